@@ -1,0 +1,1 @@
+"""Offline processing of recorded takes: calibration, keypoints, triangulation, hand fitting."""

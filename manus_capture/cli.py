@@ -1,0 +1,107 @@
+"""The `manus-capture` command line.
+
+Commands are loaded on demand: `--help` does not import torch or pycolmap, and a command whose
+module is not built yet answers in one line with exit code 2.
+
+Exit codes: 0 success, 1 the work ran and failed (a failing check, a verdict), 2 bad input or
+usage (a wrong file, a missing key, a command that is not built), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from . import __version__
+
+# name -> (module under manus_capture.commands that defines `command`, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "rig": ("rig", "Create, check and list rig configurations (rig.toml)."),
+    "leds": ("leds", "Switch, set and flash the LED panels."),
+    "record": ("record", "Record a take from every camera of the rig."),
+    "protocol": ("protocol", "Walk through the capture protocol of a session, one take per step."),
+    "sync-report": ("sync_report", "Validate the synchronization of a recorded take."),
+    "calibrate": ("calibrate", "Calibrate one camera (intrinsics) or the whole rig."),
+    "models": ("models", "Install and list the hand keypoint models."),
+    "detect": ("detect", "Detect 2D hand keypoints in every view of a take."),
+    "annotate": ("annotate", "Triangulate, fit the hand skeleton and filter: the dataset file."),
+    "stats": ("stats", "Summarize a dataset file: coverage, errors, grip aperture."),
+    "segment": ("segment", "Hand and object masks, and the green-paint contact truth."),
+    "reconstruct": ("reconstruct", "Train Gaussian models of the object and the hand."),
+    "contacts": ("contacts", "Hand-object contacts from the Gaussian models."),
+    "evaluate": ("evaluate", "Score estimated contacts against the paint ground truth."),
+    "demo": ("demo", "Run the whole pipeline on the simulated rig and report every stage."),
+}
+
+
+def _not_built(name: str, help_text: str) -> click.Command:
+    def run() -> None:
+        raise _UsageError(f"'{name}' is not built yet in this version of manus-capture")
+
+    return click.Command(name, callback=run, help=f"{help_text} (not built yet)",
+                         short_help=f"{help_text} (not built yet)",
+                         context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
+
+
+class _UsageError(click.ClickException):
+    exit_code = 2
+
+
+class LazyGroup(click.Group):
+    """A group whose sub-commands live in manus_capture.commands.<module>.command."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module_name, help_text = COMMANDS[name]
+        qualified = f"{__package__}.commands.{module_name}"
+        try:
+            module = importlib.import_module(qualified)
+        except ModuleNotFoundError as exc:
+            if exc.name != qualified:
+                raise
+            return _not_built(name, help_text)
+        return module.command
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        # Listing uses the table, so `--help` stays fast and never imports a command module.
+        rows = [(name, help_text) for name, (_, help_text) in COMMANDS.items()]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except (click.ClickException, click.exceptions.Exit, click.exceptions.Abort):
+            raise
+        except KeyboardInterrupt:
+            click.echo("interrupted", err=True)
+            ctx.exit(130)
+        except Exception as exc:
+            # Errors of the lower layers carry an exit_code when they describe bad input; they
+            # get one line, not a traceback.
+            code = getattr(exc, "exit_code", None)
+            if isinstance(code, int):
+                err = click.ClickException(str(exc))
+                err.exit_code = code
+                raise err from exc
+            raise
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="manus-capture")
+def cli() -> None:
+    """Multi-view hand-object grasp capture: record, calibrate, annotate, reconstruct, score."""
+
+
+def main() -> None:
+    cli(prog_name="manus-capture")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per top-level command; cli.py loads them on demand."""

@@ -79,7 +79,7 @@ class SimConfig:
     """The simulated world; the per-camera clock and optics live in each camera's `sim` table."""
 
     cube_edge: float = 1.2
-    tag_size: float = 0.16
+    tag_size: float = 0.24
     tags_per_wall: int = 3
     subject: str = "s01"
     object: Literal["box", "mug", "sphere"] = "mug"
@@ -224,7 +224,7 @@ def _toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, (int, float)):
-        return repr(round(v, 9) if isinstance(v, float) else v)
+        return repr(v)
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, (tuple, list)):

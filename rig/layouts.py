@@ -1,0 +1,102 @@
+"""Camera layouts: where the cameras of a rig sit. `cube53` is the MANUS-Grasps capture cube.
+
+To add a layout, write a function returning (ids, positions (N,3), up vectors (N,3)) and register it
+in LAYOUTS (docs/simulation.md walks through it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import CameraConfig, RigConfig, SimCameraConfig, SimConfig, StorageConfig, LedConfig
+
+
+def cube53(edge: float = 1.2, inset: float = 0.05, spread: float = 0.4) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """6 faces x a 3x3 grid, less the floor's centre where the table stands: 53 cameras.
+
+    Cameras sit `inset` metres inside each wall on a grid of pitch `spread`, all aimed at the centre.
+    """
+    ids, pos, ups = [], [], []
+    h = edge / 2 - inset
+    grid = (-spread, 0.0, spread)
+    for axis in range(3):
+        for sign in (1, -1):
+            face = f"{'xyz'[axis]}{'+' if sign > 0 else '-'}"
+            others = [a for a in range(3) if a != axis]
+            for i, a in enumerate(grid):
+                for j, b in enumerate(grid):
+                    if face == "z-" and a == 0 and b == 0:
+                        continue
+                    p = np.zeros(3)
+                    p[axis] = sign * h
+                    p[others[0]], p[others[1]] = a, b
+                    ids.append(f"{face}{i}{j}")
+                    pos.append(p)
+                    ups.append((0.0, 1.0, 0.0) if axis == 2 else (0.0, 0.0, 1.0))
+    return ids, np.array(pos), np.array(ups)
+
+
+LAYOUTS = {"cube53": cube53}
+
+
+def spread_subset(positions: np.ndarray, n: int) -> np.ndarray:
+    """Indices of n cameras spread over all faces: one near each face's centre first, then
+    farthest-point sampling over the rest."""
+    n = min(n, len(positions))
+    dirs = positions / np.linalg.norm(positions, axis=1, keepdims=True)
+    axes = np.concatenate([np.eye(3), -np.eye(3)])[[0, 3, 1, 4, 2, 5]]
+    chosen: list[int] = []
+    for axis in axes:
+        i = int(np.argmax(dirs @ axis))
+        if i not in chosen:
+            chosen.append(i)
+    chosen = chosen[:n]
+    d = np.min(np.linalg.norm(positions[:, None] - positions[chosen][None], axis=2), axis=1)
+    while len(chosen) < n:
+        nxt = int(np.argmax(d))
+        chosen.append(nxt)
+        d = np.minimum(d, np.linalg.norm(positions - positions[nxt], axis=1))
+    return np.sort(np.array(chosen))
+
+
+def r(x: float) -> float:
+    """Round a generated value so rig.toml stays readable and reloads exactly."""
+    return round(float(x), 4)
+
+
+def make_rig(layout: str = "cube53", cameras: int | None = None, resolution: tuple[int, int] = (1280, 720),
+             fps: float = 120.0, backend: str = "sim", seed: int = 0, sync: str = "free-run",
+             name: str | None = None) -> RigConfig:
+    """A rig configuration for a layout. The sim backend gets realistic, seeded imperfections:
+    clock offsets of a few ms, drifts of tens of ppm, jitter, trigger latency, a small drop rate,
+    and a little lens distortion; every value is written out so that it can be edited."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
+    ids, pos, ups = LAYOUTS[layout]()
+    if cameras is not None:
+        if cameras < 1:
+            raise ValueError("--cameras must be at least 1")
+        keep = spread_subset(pos, cameras)
+        ids, pos, ups = [ids[i] for i in keep], pos[keep], ups[keep]
+    rng = np.random.default_rng(seed)
+    period_ms = 1000.0 / fps
+    width, height = resolution
+    cams = []
+    for k, (cam_id, p, up) in enumerate(zip(ids, pos, ups)):
+        sim = None
+        if backend == "sim":
+            sim = SimCameraConfig(
+                position=tuple(r(x) for x in p), look_at=(0.0, 0.0, -0.05), up=tuple(float(x) for x in up),
+                hfov_deg=r(rng.uniform(72, 78)),
+                dist=(r(rng.normal(0, 0.03)), r(rng.normal(0, 0.01)), 0.0, 0.0, 0.0),
+                clock_offset_ms=r(rng.uniform(-5, 5)), drift_ppm=r(rng.normal(0, 25)),
+                phase_ms=r(rng.uniform(0, period_ms)), timestamp_jitter_us=20.0,
+                trigger_latency_us=r(rng.uniform(80, 250)), trigger_jitter_us=30.0,
+                latency_ms=r(rng.uniform(1.5, 3.0)), latency_jitter_ms=0.3, drop_rate=0.002)
+        device = f"sim:{k}" if backend == "sim" else ("/dev/v4l/by-id/CHANGE-ME" if backend == "v4l2" else "CHANGE-ME")
+        cams.append(CameraConfig(id=cam_id, backend=backend, device=device, width=width, height=height,
+                                 fps=fps, sim=sim))
+    return RigConfig(name=name or f"{layout}-{len(cams)}", cameras=tuple(cams), layout=layout, fps=fps,
+                     sync=sync, leds=LedConfig(port="sim" if backend == "sim" else "/dev/ttyACM0",
+                                               protocol="sim" if backend == "sim" else "ascii"),
+                     storage=StorageConfig(), sim=SimConfig(seed=seed) if backend == "sim" else None)

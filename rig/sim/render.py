@@ -1,0 +1,258 @@
+"""Vectorized renderer of the simulated cube: ray casting in numpy, OpenCV for texture sampling.
+
+Per camera, everything static (the walls with their tags, the table) is rendered once with
+trilinear mip-mapped texture sampling and cached. Per frame only the rays that can meet the hand or
+the object (their projected bounding box) are cast, `supersample`^2 rays per pixel, and averaged:
+edges are anti-aliased and the per-pixel labels follow the majority of a pixel's rays.
+Lens distortion is exact: rays are cast through the undistorted position of each distorted pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from dataset_tools.cameras import CameraRig
+
+from . import shapes
+from .world import MIP_LEVELS, World
+
+LABEL_BACKGROUND, LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL_WALLS = 0, 1, 2, 3, 4
+PAINT_BGR = np.array([0.2, 0.78, 0.12], np.float32)  # the green residue left on the hand
+AMBIENT = 0.25  # room light when the LEDs are off, as a fraction of full LED light
+
+
+@dataclass(frozen=True)
+class Rendered:
+    image: np.ndarray         # (H,W,3) float32 BGR in [0, 1], before noise and encoding
+    labels: np.ndarray | None  # (H,W) uint8 when asked for
+
+
+def _camera_rays(rig: CameraRig, cam: int, pixels: np.ndarray) -> np.ndarray:
+    """Unit world directions (N,3) of rays through distorted pixel positions (N,2)."""
+    pts = pixels.reshape(-1, 1, 2).astype(np.float64)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
+    xy = cv2.undistortPoints(pts, rig.K[cam], rig.dist[cam], criteria=criteria).reshape(-1, 2)
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d @ rig.R[cam]  # R^T d for each row
+
+
+def shade(albedo: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Diffuse light from all around plus a term facing the viewer (the LED panels surround the
+    cube), so that curved surfaces show their shape."""
+    facing = np.abs(np.einsum("ij,ij->i", normals, dirs))
+    return albedo * (0.55 + 0.45 * facing)[:, None].astype(np.float32)
+
+
+class Renderer:
+    """Renders views of one world for the cameras of `rig` (the true cameras of the simulation)."""
+
+    def __init__(self, world: World, rig: CameraRig, supersample: int = 2) -> None:
+        self.world = world
+        self.rig = rig
+        self.supersample = max(1, int(supersample))
+        self._background: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._faces = world.faces
+        self._normals = np.array([f.normal for f in self._faces])
+        self._origins = np.array([f.origin for f in self._faces])
+        self._us = np.array([f.u for f in self._faces])
+        self._vs = np.array([f.v for f in self._faces])
+
+    # -- the static part -------------------------------------------------------------------
+    def _walls(self, origin: np.ndarray, dirs: np.ndarray, focal: float) -> tuple[np.ndarray, np.ndarray]:
+        """Colour (N,3) and distance (N,) where rays from inside the cube meet the walls."""
+        w = self.world
+        h = w.edge / 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_axes = (np.where(dirs > 0, h, -h) - origin) / dirs
+        s_axes = np.where(np.isfinite(s_axes) & (s_axes > 0), s_axes, np.inf)
+        axis = np.argmin(s_axes, axis=1)
+        s = s_axes[np.arange(len(dirs)), axis]
+        face = 2 * axis + (dirs[np.arange(len(dirs)), axis] < 0)
+        hit = origin + s[:, None] * dirs
+        rel = hit - self._origins[face]
+        u = np.clip(np.einsum("ij,ij->i", rel, self._us[face]), 0, w.edge)
+        v = np.clip(np.einsum("ij,ij->i", rel, self._vs[face]), 0, w.edge)
+        cos = np.abs(np.einsum("ij,ij->i", dirs, self._normals[face]))
+        # texels under one pixel; grazing views stretch the footprint along one axis
+        footprint = s / focal / np.sqrt(np.maximum(cos, 1e-3)) / w.texel
+        lod = np.clip(np.log2(np.maximum(footprint, 1.0)), 0, MIP_LEVELS - 1)
+        x0 = u / w.texel + w.pad
+        y0 = face * (w.tile + 2 * w.pad) + w.pad + v / w.texel
+        n = len(dirs)
+        colour = np.zeros((n, 3), np.float32)
+        # cv2.remap wants maps under 32767 on a side: lay the samples out as rows of 1024
+        rows = -(-n // 1024)
+        for level in range(int(np.floor(lod.min())), int(np.ceil(lod.max())) + 1):
+            weight = np.maximum(0.0, 1.0 - np.abs(lod - level)).astype(np.float32)
+            if not weight.any():
+                continue
+            scale = 2.0 ** level
+            mx = np.zeros(rows * 1024, np.float32)
+            my = np.zeros(rows * 1024, np.float32)
+            mx[:n], my[:n] = x0 / scale - 0.5, y0 / scale - 0.5
+            sample = cv2.remap(w.atlas[level], mx.reshape(rows, 1024), my.reshape(rows, 1024), cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REPLICATE)
+            colour += weight[:, None] * sample.reshape(-1, 3)[:n].astype(np.float32) / 255.0
+        return colour, s
+
+    def _static(self, origin: np.ndarray, dirs: np.ndarray, focal: float) -> tuple[np.ndarray, np.ndarray]:
+        """Walls and table: colour (N,3) and distance (N,)."""
+        colour, depth = self._walls(origin, dirs, focal)
+        t_table, n_table = shapes.ray_box(np.broadcast_to(origin, dirs.shape), dirs,
+                                          self.world.table_lo, self.world.table_hi)
+        on_table = t_table < depth
+        if on_table.any():
+            points = origin + t_table[on_table, None] * dirs[on_table]
+            colour[on_table] = shade(self.world.table_albedo(points), n_table[on_table], dirs[on_table])
+            depth = np.where(on_table, t_table, depth)
+        return colour, depth
+
+    def background(self, cam: int) -> tuple[np.ndarray, np.ndarray]:
+        """(H,W,3) colour and (H,W) distance of the empty cube with full LED light, cached."""
+        if cam not in self._background:
+            width, height = (int(x) for x in self.rig.size[cam])
+            s = self.supersample
+            gx, gy = self._subpixels(0, 0, width, height)
+            dirs = _camera_rays(self.rig, cam, np.stack([gx.ravel(), gy.ravel()], axis=1))
+            # each of the s x s rays samples a texture footprint 1/s of the pixel's, like a sensor
+            # integrating over its pixel's area
+            colour, depth = self._static(self.rig.centers[cam], dirs, self._focal(cam) * s)
+            colour = colour.reshape(height, s, width, s, 3).mean(axis=(1, 3))
+            depth = depth.reshape(height, s, width, s).min(axis=(1, 3))
+            self._background[cam] = (colour, depth.astype(np.float32))
+        return self._background[cam]
+
+    def _subpixels(self, x0: int, y0: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (height*s, width*s) of the s x s rays of each pixel of a box, row-major."""
+        s = self.supersample
+        sub = (np.arange(s) + 0.5) / s - 0.5
+        xs = (x0 + np.arange(width)[:, None] + sub[None, :]).ravel()
+        ys = (y0 + np.arange(height)[:, None] + sub[None, :]).ravel()
+        gy, gx = np.meshgrid(ys, xs, indexing="ij")
+        return gx, gy
+
+    def _focal(self, cam: int) -> float:
+        return float(np.sqrt(self.rig.K[cam, 0, 0] * self.rig.K[cam, 1, 1]))
+
+    # -- the moving part -------------------------------------------------------------------
+    def _bbox(self, cam: int, centre: np.ndarray, radius: float) -> tuple[int, int, int, int] | None:
+        """Pixel box (x0, y0, x1, y1) inclusive that holds a sphere's image, or None if unseen."""
+        width, height = (int(x) for x in self.rig.size[cam])
+        c_cam = self.rig.R[cam] @ centre + self.rig.t[cam]
+        if c_cam[2] <= radius:  # the sphere reaches behind the camera's image plane
+            return (0, 0, width - 1, height - 1) if c_cam[2] > -radius else None
+        corners = centre + radius * np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        uv = self.rig.subset([self.rig.ids[cam]]).project(corners)[0]
+        x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 2
+        x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 2
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width - 1), min(y1, height - 1)
+        return None if x0 > x1 or y0 > y1 else (x0, y0, x1, y1)
+
+    def render(self, cam: int, hand=None, hand_angles=None, paint=None, obj=None, object_pose=None,
+               light: float = 1.0, labels: bool = False) -> Rendered:
+        """One view. `hand` is a rig.sim.hand.HandModel posed by `hand_angles` (26,), `paint` its
+        per-surface-point paint flags; `obj` a rig.sim.objects.SimObject at `object_pose` (R, t);
+        `light` the LED level in [0, 1]."""
+        bg_colour, bg_depth = self.background(cam)
+        image = bg_colour.copy()
+        label_img = np.full(bg_depth.shape, LABEL_WALLS, np.uint8) if labels else None
+        spheres = []
+        if hand is not None and hand_angles is not None:
+            a, b, r = hand.capsules(hand_angles)
+            ends = np.concatenate([a, b])
+            centre = (ends.min(axis=0) + ends.max(axis=0)) / 2
+            spheres.append((centre, float(np.max(np.linalg.norm(ends - centre, axis=1)) + r.max())))
+        if obj is not None and object_pose is not None:
+            spheres.append((np.asarray(object_pose[1], np.float64), float(obj.radius)))
+        boxes = [b for b in (self._bbox(cam, c, rad) for c, rad in spheres) if b is not None]
+        if boxes:
+            x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+            x1, y1 = max(b[2] for b in boxes), max(b[3] for b in boxes)
+            self._render_box(cam, (x0, y0, x1, y1), image, label_img, bg_colour, bg_depth,
+                             hand, hand_angles, paint, obj, object_pose)
+        level = AMBIENT + (1 - AMBIENT) * float(np.clip(light, 0.0, 1.0))
+        return Rendered(image * np.float32(level), label_img)
+
+    def _render_box(self, cam, box, image, label_img, bg_colour, bg_depth, hand, hand_angles, paint,
+                    obj, object_pose) -> None:
+        x0, y0, x1, y1 = box
+        s = self.supersample
+        bw, bh = x1 - x0 + 1, y1 - y0 + 1
+        gx, gy = self._subpixels(x0, y0, bw, bh)
+        dirs = _camera_rays(self.rig, cam, np.stack([gx.ravel(), gy.ravel()], axis=1))
+        origin = self.rig.centers[cam]
+        n = len(dirs)
+        # the static depth under each ray, from its own pixel: the table edge is sharp enough there
+        py = (np.arange(bh * s) // s)[:, None].repeat(bw * s, axis=1).ravel() + y0
+        px = (np.arange(bw * s) // s)[None, :].repeat(bh * s, axis=0).ravel() + x0
+        depth = bg_depth[py, px].astype(np.float64)
+        colour = bg_colour[py, px].copy()
+        label = np.full(n, LABEL_WALLS, np.uint8)
+        gx, gy = gx.ravel(), gy.ravel()
+        if hand is not None and hand_angles is not None:
+            a, b, r = hand.capsules(hand_angles)
+            t_h = np.full(n, np.inf)
+            n_h = np.zeros((n, 3))
+            # each capsule only meets the rays inside its own projected bounding circle
+            for m in range(len(r)):
+                sel = np.flatnonzero(self._near(cam, (a[m] + b[m]) / 2, np.linalg.norm(b[m] - a[m]) / 2 + r[m], gx, gy))
+                if len(sel) == 0:
+                    continue
+                t_m, _, n_m = shapes.ray_capsules(np.broadcast_to(origin, (len(sel), 3)), dirs[sel],
+                                                  a[m:m + 1], b[m:m + 1], r[m:m + 1])
+                closer = t_m < t_h[sel]
+                t_h[sel[closer]] = t_m[closer]
+                n_h[sel[closer]] = n_m[closer]
+            hit = t_h < depth
+            if hit.any():
+                points = origin + t_h[hit, None] * dirs[hit]
+                surface, _ = hand.surface_points(hand_angles)
+                _, nearest = cKDTree(surface).query(points)
+                albedo = np.broadcast_to(np.asarray(hand.skin_albedo, np.float32)[::-1], (len(points), 3)).copy()
+                albedo *= self._skin_texture(len(surface))[nearest, None]
+                painted = np.zeros(len(points), bool) if paint is None else np.asarray(paint)[nearest]
+                albedo[painted] = PAINT_BGR
+                colour[hit] = shade(albedo, n_h[hit], dirs[hit])
+                label[hit] = np.where(painted, LABEL_PAINT, LABEL_HAND)
+                depth = np.where(hit, t_h, depth)
+        if obj is not None and object_pose is not None:
+            sel = np.flatnonzero(self._near(cam, np.asarray(object_pose[1], np.float64), obj.radius, gx, gy))
+            t_o, n_o, albedo_o = obj.intersect(np.broadcast_to(origin, (len(sel), 3)), dirs[sel], object_pose)
+            hit = t_o < depth[sel]
+            if hit.any():
+                rays = sel[hit]
+                colour[rays] = shade(np.asarray(albedo_o, np.float32)[hit][:, ::-1], n_o[hit], dirs[rays])
+                label[rays] = LABEL_OBJECT
+        # average the s x s rays of each pixel
+        block = colour.reshape(bh, s, bw, s, 3).mean(axis=(1, 3))
+        image[y0:y1 + 1, x0:x1 + 1] = block
+        if label_img is not None:
+            counts = np.zeros((bh * bw, 5), np.int32)
+            pix = (np.arange(bh * s) // s)[:, None] * bw + (np.arange(bw * s) // s)[None, :]
+            np.add.at(counts, (pix.ravel(), label), 1)
+            # majority of the pixel's rays; a tie goes to the lower label (hand before object before walls)
+            label_img[y0:y1 + 1, x0:x1 + 1] = np.argmax(counts, axis=1).reshape(bh, bw).astype(np.uint8)
+
+    def _near(self, cam: int, centre: np.ndarray, radius: float, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+        """Rays (by pixel position) that may meet a sphere: a square around its projected circle."""
+        z = self.rig.R[cam, 2] @ centre + self.rig.t[cam, 2]
+        if z <= radius * 1.05:
+            return np.ones(gx.shape, bool)
+        u, v = self.rig.subset([self.rig.ids[cam]]).project(centre[None])[0, 0]
+        # the circle's radius in pixels, with room for lens distortion near the image's edge
+        r_px = 1.2 * self._focal(cam) * radius / np.sqrt(z * z - radius * radius) + 2
+        return (np.abs(gx - u) <= r_px) & (np.abs(gy - v) <= r_px)
+
+    _skin_cache: dict[int, np.ndarray] = {}
+
+    @classmethod
+    def _skin_texture(cls, n: int) -> np.ndarray:
+        """A fixed, mild brightness variation per hand surface point (freckles, creases)."""
+        if n not in cls._skin_cache:
+            cls._skin_cache[n] = (1.0 + 0.08 * np.random.default_rng(7).standard_normal(n)).astype(np.float32)
+        return cls._skin_cache[n]

@@ -1,0 +1,189 @@
+"""The simulated capture cube: walls with an AprilTag 36h11 layout, textured background, a table.
+
+The walls are textured planes. Their texture lives in one atlas with a mip pyramid so that the
+renderer can sample it with trilinear filtering: tag edges come out anti-aliased and their
+corners sub-pixel accurate at any distance. The layout of tags is written as tags.json for
+calibration; tag corners are in OpenCV's order (top-left, top-right, bottom-right, bottom-left
+as seen facing the tag).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+
+import cv2
+import numpy as np
+
+TAG_CELLS = 8          # a 36h11 tag is 6x6 data cells inside a one-cell black border
+MIP_LEVELS = 6         # level 5 is a 32x reduction: enough for 320x180 views of the far wall
+
+
+@dataclass(frozen=True)
+class Face:
+    """A wall seen from inside: `u` points right and `v` down for a viewer facing it."""
+
+    name: str
+    normal: np.ndarray  # unit, pointing into the cube
+    origin: np.ndarray  # the wall point at texture (u, v) = (0, 0): its top-left corner
+    u: np.ndarray
+    v: np.ndarray
+
+
+def _faces(edge: float) -> tuple[Face, ...]:
+    h = edge / 2
+    specs = [  # name, inward normal, u, v  (u x v = -normal, so tags are not mirrored)
+        ("x+", (-1, 0, 0), (0, -1, 0), (0, 0, -1)),
+        ("x-", (1, 0, 0), (0, 1, 0), (0, 0, -1)),
+        ("y+", (0, -1, 0), (1, 0, 0), (0, 0, -1)),
+        ("y-", (0, 1, 0), (-1, 0, 0), (0, 0, -1)),
+        ("z+", (0, 0, -1), (1, 0, 0), (0, 1, 0)),    # ceiling
+        ("z-", (0, 0, 1), (1, 0, 0), (0, -1, 0)),    # floor
+    ]
+    faces = []
+    for name, n, u, v in specs:
+        n, u, v = (np.array(a, dtype=np.float64) for a in (n, u, v))
+        assert np.allclose(np.cross(u, v), -n)
+        origin = -n * h - u * h - v * h
+        faces.append(Face(name, n, origin, u, v))
+    return tuple(faces)
+
+
+def _smooth_noise(rng: np.random.Generator, size: int, octaves: tuple[int, ...]) -> np.ndarray:
+    """Coloured multi-scale noise in [0, 1], (size, size, 3), fast: upsampled random fields."""
+    out = np.zeros((size, size, 3), np.float32)
+    total = 0.0
+    for cells in octaves:
+        field = rng.random((cells, cells, 3), dtype=np.float32)
+        out += cv2.resize(field, (size, size), interpolation=cv2.INTER_CUBIC) / cells ** 0.3
+        total += 1 / cells ** 0.3
+    out /= total
+    lo, hi = np.percentile(out, [1, 99])
+    return np.clip((out - lo) / (hi - lo), 0, 1)
+
+
+@dataclass(frozen=True)
+class World:
+    """The static part of the cube. Metres; z up; origin at the cube's centre."""
+
+    edge: float = 1.2
+    tag_size: float = 0.24
+    tags_per_wall: int = 3
+    table_half: float = 0.2
+    table_top: float = -0.15
+    texel: float = 0.002  # metres per texel at mip level 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        cell = self.tag_size / TAG_CELLS
+        if abs(cell / self.texel - round(cell / self.texel)) > 1e-6:
+            # A tag cell that is a whole number of texels keeps every tag edge on a texel edge.
+            object.__setattr__(self, "texel", cell / max(1, round(cell / self.texel)))
+
+    @cached_property
+    def faces(self) -> tuple[Face, ...]:
+        return _faces(self.edge)
+
+    @property
+    def table_lo(self) -> np.ndarray:
+        return np.array([-self.table_half, -self.table_half, -self.edge / 2])
+
+    @property
+    def table_hi(self) -> np.ndarray:
+        return np.array([self.table_half, self.table_half, self.table_top])
+
+    @property
+    def tile(self) -> int:
+        """Texels per wall side at level 0."""
+        return int(round(self.edge / self.texel))
+
+    @property
+    def pad(self) -> int:
+        """Border texels around each tile, so every mip level's tile starts on a whole texel."""
+        step = 2 ** (MIP_LEVELS - 1)
+        pad = step
+        while (self.tile + 2 * pad) % step:
+            pad += 1
+        return pad
+
+    @cached_property
+    def tags(self) -> dict[int, np.ndarray]:
+        """Tag id -> (4,3) world corners (TL, TR, BR, BL). The floor's centre is under the table."""
+        n = self.tags_per_wall
+        pitch = self.edge / n
+        tags: dict[int, np.ndarray] = {}
+        next_id = 0
+        for face in self.faces:
+            for row in range(n):
+                for col in range(n):
+                    cu, cv_ = (col + 0.5) * pitch, (row + 0.5) * pitch
+                    if face.name == "z-" and abs(cu - self.edge / 2) < self.table_half + self.tag_size and \
+                            abs(cv_ - self.edge / 2) < self.table_half + self.tag_size:
+                        continue
+                    # snap the top-left corner onto a texel edge
+                    u0 = round((cu - self.tag_size / 2) / self.texel) * self.texel
+                    v0 = round((cv_ - self.tag_size / 2) / self.texel) * self.texel
+                    s = self.tag_size
+                    uv = np.array([[u0, v0], [u0 + s, v0], [u0 + s, v0 + s], [u0, v0 + s]])
+                    tags[next_id] = face.origin + uv[:, :1] * face.u + uv[:, 1:] * face.v
+                    next_id += 1
+        return tags
+
+    def tag_faces(self) -> dict[int, int]:
+        """Tag id -> index of the face it is on."""
+        out = {}
+        for tag_id, corners in self.tags.items():
+            centre = corners.mean(axis=0)
+            out[tag_id] = int(np.argmax([centre @ -f.normal for f in self.faces]))
+        return out
+
+    def tags_json(self) -> dict:
+        return {"family": "tag36h11", "size": self.tag_size,
+                "tags": {str(i): c.round(9).tolist() for i, c in self.tags.items()}}
+
+    def write_tags(self, path) -> None:
+        from dataset_tools.fileio import write_atomic
+        write_atomic(path, json.dumps(self.tags_json(), indent=1).encode())
+
+    @cached_property
+    def atlas(self) -> tuple[np.ndarray, ...]:
+        """The wall textures as one atlas (faces stacked vertically), as a mip pyramid of uint8 BGR."""
+        rng = np.random.default_rng(self.seed)
+        T, p = self.tile, self.pad
+        tiles = []
+        tag_face = self.tag_faces()
+        dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+        cell_tx = int(round(self.tag_size / TAG_CELLS / self.texel))
+        for fi, face in enumerate(self.faces):
+            # muted background so the black-and-white tags keep their contrast
+            tex = 0.25 + 0.55 * _smooth_noise(rng, T, (6, 17, 45, 120))
+            img = (tex * 255).astype(np.uint8)
+            for tag_id, corners in self.tags.items():
+                if tag_face[tag_id] != fi:
+                    continue
+                rel = corners[0] - face.origin
+                c0, r0 = int(round(rel @ face.u / self.texel)), int(round(rel @ face.v / self.texel))
+                side = TAG_CELLS * cell_tx
+                quiet = int(1.5 * cell_tx)  # white quiet zone the detector needs
+                img[r0 - quiet:r0 + side + quiet, c0 - quiet:c0 + side + quiet] = 235
+                marker = dictionary.generateImageMarker(tag_id, side)
+                img[r0:r0 + side, c0:c0 + side] = np.where(marker[..., None] > 0, 235, 20)
+            tiles.append(cv2.copyMakeBorder(img, p, p, p, p, cv2.BORDER_REFLECT_101))
+        level = np.concatenate(tiles, axis=0)
+        pyramid = [level]
+        for _ in range(MIP_LEVELS - 1):
+            level = cv2.resize(level, (level.shape[1] // 2, level.shape[0] // 2), interpolation=cv2.INTER_AREA)
+            pyramid.append(level)
+        for lv in pyramid:
+            lv.setflags(write=False)
+        return tuple(pyramid)
+
+    def table_albedo(self, points: np.ndarray) -> np.ndarray:
+        """Wood-like procedural colour of the table at world points (N,3) -> (N,3) BGR in [0, 1]."""
+        x, y, z = points[:, 0], points[:, 1], points[:, 2]
+        grain = 0.5 + 0.5 * np.sin(90 * x + 6 * np.sin(23 * y) + 40 * z)
+        rings = 0.5 + 0.5 * np.sin(31 * y + 13 * np.sin(11 * x))
+        shade = 0.75 + 0.15 * grain + 0.1 * rings
+        base = np.array([0.28, 0.45, 0.62])  # BGR: a warm brown
+        return (shade[:, None] * base).astype(np.float32)

@@ -1,0 +1,89 @@
+"""The simulated cube's images: tag corners land where the true cameras project them."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from dataset_tools.calibration.tag_edges import refine_tag_corners
+from rig.layouts import make_rig
+from rig.sim import shapes
+from rig.sim.cube import true_cameras
+from rig.sim.render import LABEL_WALLS, Renderer
+from rig.sim.world import World
+
+
+def detector() -> cv2.aruco.ArucoDetector:
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    return cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+
+
+def visible(world: World, centre: np.ndarray, corners: np.ndarray) -> bool:
+    """False when the table stands between the camera and any corner of the tag."""
+    d = corners - centre
+    t, _ = shapes.ray_box(np.broadcast_to(centre, d.shape), d, world.table_lo, world.table_hi)
+    return bool(np.all(t > 1.0 - 1e-9))
+
+
+def corner_errors(resolution, cameras, min_side_px):
+    rig = make_rig("cube53", resolution=resolution, seed=1)
+    cams = true_cameras(rig)
+    world = World()
+    renderer = Renderer(world, cams, supersample=2)
+    det = detector()
+    errors, n_tags = [], 0
+    for i in np.linspace(0, len(cams) - 1, cameras).round().astype(int):
+        image = (renderer.render(int(i)).image * 255).round().astype(np.uint8)
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        corners, ids, _ = det.detectMarkers(gray)
+        one = cams.subset([cams.ids[i]])
+        if ids is not None:
+            corners = refine_tag_corners(gray, np.array(corners), one.K[0], one.dist[0])[:, None]
+        for found, tag_id in zip(corners, ids.ravel() if ids is not None else []):
+            truth = world.tags[int(tag_id)]
+            projected = one.project(truth)[0]
+            side = np.linalg.norm(projected - np.roll(projected, 1, axis=0), axis=1).min()
+            if side < min_side_px or not visible(world, cams.centers[i], truth):
+                continue
+            n_tags += 1
+            errors.append(np.linalg.norm(found[0] - projected, axis=1))
+    return np.concatenate(errors), n_tags
+
+
+@pytest.mark.parametrize("resolution, cameras", [((320, 180), 14), ((1280, 720), 3)])
+def test_tag_corners_within_half_a_pixel(resolution, cameras):
+    # Every corner within 0.5 px (the issue's bound); the median bound is what an exact renderer
+    # and the edge refinement give together (measured 0.006 px at 320x180, 0.004 px at 1280x720).
+    errors, n_tags = corner_errors(resolution, cameras, min_side_px=12)
+    assert n_tags >= 3 * cameras  # every camera sees several whole tags
+    assert errors.max() < 0.5, np.percentile(errors, [50, 95, 100])
+    assert np.median(errors) < 0.05
+
+
+def test_tags_json_matches_world_layout():
+    world = World()
+    doc = world.tags_json()
+    assert doc["family"] == "tag36h11" and doc["size"] == world.tag_size
+    sides = [np.linalg.norm(np.diff(np.array(c), axis=0), axis=1) for c in doc["tags"].values()]
+    assert np.allclose(sides, world.tag_size, atol=1e-9)
+    # every tag lies on a wall, and the floor's centre (under the table) carries none
+    for corners in world.tags.values():
+        c = np.asarray(corners)
+        assert np.isclose(np.abs(c).max(), world.edge / 2)
+        assert not (np.isclose(c[:, 2], -world.edge / 2).all() and np.abs(c[:, :2]).max() < world.table_half)
+
+
+def test_lighting_scales_the_image():
+    rig = make_rig("cube53", cameras=6, resolution=(160, 90))
+    renderer = Renderer(World(), true_cameras(rig))
+    full = renderer.render(0, light=1.0).image.mean()
+    dim = renderer.render(0, light=0.0).image.mean()
+    assert 0.2 < dim / full < 0.3  # only the room's ambient light is left
+
+
+def test_empty_cube_labels_are_walls():
+    rig = make_rig("cube53", cameras=6, resolution=(160, 90))
+    out = Renderer(World(), true_cameras(rig)).render(2, labels=True)
+    assert out.labels.shape == (90, 160) and (out.labels == LABEL_WALLS).all()

@@ -9,7 +9,7 @@ SUDO     := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTEST_ARGS ?= -n 2 -q
 DEMO_DIR ?= demo
 
-.PHONY: setup system demo test bench clean
+.PHONY: setup system models demo test bench clean
 
 setup: system $(STAMP)
 
@@ -33,10 +33,13 @@ $(STAMP): setup.cfg pyproject.toml
 demo: setup
 	$(VENV)/bin/manus-capture demo -o $(DEMO_DIR)
 
-test: setup
+models: setup
+	$(VENV)/bin/manus-capture models install mediapipe-hand
+
+test: models
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-bench: setup
+bench: models
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:

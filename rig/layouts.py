@@ -94,8 +94,10 @@ def make_rig(layout: str = "cube53", cameras: int | None = None, resolution: tup
                 trigger_latency_us=r(rng.uniform(80, 250)), trigger_jitter_us=30.0,
                 latency_ms=r(rng.uniform(1.5, 3.0)), latency_jitter_ms=0.3, drop_rate=0.002)
         device = f"sim:{k}" if backend == "sim" else ("/dev/v4l/by-id/CHANGE-ME" if backend == "v4l2" else "CHANGE-ME")
+        # GigE/USB3 Vision cameras hand out raw pixels; UVC and the simulated cube hand out MJPEG
+        pixel_format = "Mono8" if backend == "aravis" else "MJPG"
         cams.append(CameraConfig(id=cam_id, backend=backend, device=device, width=width, height=height,
-                                 fps=fps, sim=sim))
+                                 fps=fps, pixel_format=pixel_format, sim=sim))
     return RigConfig(name=name or f"{layout}-{len(cams)}", cameras=tuple(cams), layout=layout, fps=fps,
                      sync=sync, leds=LedConfig(port="sim" if backend == "sim" else "/dev/ttyACM0",
                                                protocol="sim" if backend == "sim" else "ascii"),

@@ -31,14 +31,28 @@ class Rendered:
     labels: np.ndarray | None  # (H,W) uint8 when asked for
 
 
-def _camera_rays(rig: CameraRig, cam: int, pixels: np.ndarray) -> np.ndarray:
-    """Unit world directions (N,3) of rays through distorted pixel positions (N,2)."""
-    pts = pixels.reshape(-1, 1, 2).astype(np.float64)
+def _undistortion_map(rig: CameraRig, cam: int) -> np.ndarray:
+    """(H+2, W+2, 2) float32 normalized undistorted coordinates of every pixel centre, with a
+    one-pixel border so that sub-pixel positions at the image's edge interpolate too."""
+    width, height = (int(x) for x in rig.size[cam])
+    yy, xx = np.mgrid[-1:height + 1, -1:width + 1]
+    pts = np.stack([xx.ravel(), yy.ravel()], axis=1).reshape(-1, 1, 2).astype(np.float64)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
-    xy = cv2.undistortPoints(pts, rig.K[cam], rig.dist[cam], criteria=criteria).reshape(-1, 2)
-    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return d @ rig.R[cam]  # R^T d for each row
+    xy = cv2.undistortPoints(pts, rig.K[cam], rig.dist[cam], criteria=criteria)
+    return xy.reshape(height + 2, width + 2, 2).astype(np.float32)
+
+
+def remap_points(table: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of `table` (rows, cols, ch) at float positions; cv2.remap, in rows of 1024
+    because it wants maps under 32767 on a side."""
+    n = x.size
+    rows = -(-n // 1024)
+    mx = np.zeros(rows * 1024, np.float32)
+    my = np.zeros(rows * 1024, np.float32)
+    mx[:n], my[:n] = x.ravel(), y.ravel()
+    out = cv2.remap(table, mx.reshape(rows, 1024), my.reshape(rows, 1024), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(rows * 1024, -1)[:n]
 
 
 def shade(albedo: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -56,6 +70,9 @@ class Renderer:
         self.rig = rig
         self.supersample = max(1, int(supersample))
         self._background: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._undistort: dict[int, np.ndarray] = {}
+        self._single = [rig.subset([cam_id]) for cam_id in rig.ids]
+        self._posed: tuple[bytes, tuple] | None = None
         self._faces = world.faces
         self._normals = np.array([f.normal for f in self._faces])
         self._origins = np.array([f.origin for f in self._faces])
@@ -83,21 +100,14 @@ class Renderer:
         lod = np.clip(np.log2(np.maximum(footprint, 1.0)), 0, MIP_LEVELS - 1)
         x0 = u / w.texel + w.pad
         y0 = face * (w.tile + 2 * w.pad) + w.pad + v / w.texel
-        n = len(dirs)
-        colour = np.zeros((n, 3), np.float32)
-        # cv2.remap wants maps under 32767 on a side: lay the samples out as rows of 1024
-        rows = -(-n // 1024)
+        colour = np.zeros((len(dirs), 3), np.float32)
         for level in range(int(np.floor(lod.min())), int(np.ceil(lod.max())) + 1):
             weight = np.maximum(0.0, 1.0 - np.abs(lod - level)).astype(np.float32)
             if not weight.any():
                 continue
             scale = 2.0 ** level
-            mx = np.zeros(rows * 1024, np.float32)
-            my = np.zeros(rows * 1024, np.float32)
-            mx[:n], my[:n] = x0 / scale - 0.5, y0 / scale - 0.5
-            sample = cv2.remap(w.atlas[level], mx.reshape(rows, 1024), my.reshape(rows, 1024), cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_REPLICATE)
-            colour += weight[:, None] * sample.reshape(-1, 3)[:n].astype(np.float32) / 255.0
+            sample = remap_points(w.atlas[level], x0 / scale - 0.5, y0 / scale - 0.5)
+            colour += weight[:, None] * sample.astype(np.float32) / 255.0
         return colour, s
 
     def _static(self, origin: np.ndarray, dirs: np.ndarray, focal: float) -> tuple[np.ndarray, np.ndarray]:
@@ -118,7 +128,7 @@ class Renderer:
             width, height = (int(x) for x in self.rig.size[cam])
             s = self.supersample
             gx, gy = self._subpixels(0, 0, width, height)
-            dirs = _camera_rays(self.rig, cam, np.stack([gx.ravel(), gy.ravel()], axis=1))
+            dirs = self.rays(cam, gx.ravel(), gy.ravel())
             # each of the s x s rays samples a texture footprint 1/s of the pixel's, like a sensor
             # integrating over its pixel's area
             colour, depth = self._static(self.rig.centers[cam], dirs, self._focal(cam) * s)
@@ -136,6 +146,25 @@ class Renderer:
         gy, gx = np.meshgrid(ys, xs, indexing="ij")
         return gx, gy
 
+    def rays(self, cam: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Unit world directions (N,3) of the rays through distorted pixel positions."""
+        if cam not in self._undistort:
+            self._undistort[cam] = _undistortion_map(self.rig, cam)
+        xy = remap_points(self._undistort[cam], np.asarray(x) + 1, np.asarray(y) + 1).astype(np.float64)
+        d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return np.einsum("ij,nj->ni", self.rig.R[cam].T, d)
+
+    def _hand_geometry(self, hand, angles) -> tuple:
+        """Capsules, surface points and their search tree for a pose; cameras that expose at the
+        same moment (triggered rigs, label renders) share them."""
+        key = np.asarray(angles, np.float64).tobytes() + bytes(str(id(hand)), "ascii")
+        if self._posed is None or self._posed[0] != key:
+            a, b, r = hand.capsules(angles)
+            surface, _ = hand.surface_points(angles)
+            self._posed = (key, (a, b, r, surface, cKDTree(surface)))
+        return self._posed[1]
+
     def _focal(self, cam: int) -> float:
         return float(np.sqrt(self.rig.K[cam, 0, 0] * self.rig.K[cam, 1, 1]))
 
@@ -147,7 +176,7 @@ class Renderer:
         if c_cam[2] <= radius:  # the sphere reaches behind the camera's image plane
             return (0, 0, width - 1, height - 1) if c_cam[2] > -radius else None
         corners = centre + radius * np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-        uv = self.rig.subset([self.rig.ids[cam]]).project(corners)[0]
+        uv = self._single[cam].project(corners)[0]
         x0, y0 = np.floor(uv.min(axis=0)).astype(int) - 2
         x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + 2
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width - 1), min(y1, height - 1)
@@ -163,7 +192,7 @@ class Renderer:
         label_img = np.full(bg_depth.shape, LABEL_WALLS, np.uint8) if labels else None
         spheres = []
         if hand is not None and hand_angles is not None:
-            a, b, r = hand.capsules(hand_angles)
+            a, b, r, _, _ = self._hand_geometry(hand, hand_angles)
             ends = np.concatenate([a, b])
             centre = (ends.min(axis=0) + ends.max(axis=0)) / 2
             spheres.append((centre, float(np.max(np.linalg.norm(ends - centre, axis=1)) + r.max())))
@@ -184,7 +213,7 @@ class Renderer:
         s = self.supersample
         bw, bh = x1 - x0 + 1, y1 - y0 + 1
         gx, gy = self._subpixels(x0, y0, bw, bh)
-        dirs = _camera_rays(self.rig, cam, np.stack([gx.ravel(), gy.ravel()], axis=1))
+        dirs = self.rays(cam, gx.ravel(), gy.ravel())
         origin = self.rig.centers[cam]
         n = len(dirs)
         # the static depth under each ray, from its own pixel: the table edge is sharp enough there
@@ -195,24 +224,19 @@ class Renderer:
         label = np.full(n, LABEL_WALLS, np.uint8)
         gx, gy = gx.ravel(), gy.ravel()
         if hand is not None and hand_angles is not None:
-            a, b, r = hand.capsules(hand_angles)
+            a, b, r, surface, tree = self._hand_geometry(hand, hand_angles)
+            # only rays inside some capsule's projected bounding circle can meet the hand
+            near = np.zeros(n, bool)
+            for m in range(len(r)):
+                near |= self._near(cam, (a[m] + b[m]) / 2, np.linalg.norm(b[m] - a[m]) / 2 + r[m], gx, gy)
+            sel = np.flatnonzero(near)
             t_h = np.full(n, np.inf)
             n_h = np.zeros((n, 3))
-            # each capsule only meets the rays inside its own projected bounding circle
-            for m in range(len(r)):
-                sel = np.flatnonzero(self._near(cam, (a[m] + b[m]) / 2, np.linalg.norm(b[m] - a[m]) / 2 + r[m], gx, gy))
-                if len(sel) == 0:
-                    continue
-                t_m, _, n_m = shapes.ray_capsules(np.broadcast_to(origin, (len(sel), 3)), dirs[sel],
-                                                  a[m:m + 1], b[m:m + 1], r[m:m + 1])
-                closer = t_m < t_h[sel]
-                t_h[sel[closer]] = t_m[closer]
-                n_h[sel[closer]] = n_m[closer]
+            t_h[sel], _, n_h[sel] = shapes.ray_capsules(np.broadcast_to(origin, (len(sel), 3)), dirs[sel], a, b, r)
             hit = t_h < depth
             if hit.any():
                 points = origin + t_h[hit, None] * dirs[hit]
-                surface, _ = hand.surface_points(hand_angles)
-                _, nearest = cKDTree(surface).query(points)
+                _, nearest = tree.query(points)
                 albedo = np.broadcast_to(np.asarray(hand.skin_albedo, np.float32)[::-1], (len(points), 3)).copy()
                 albedo *= self._skin_texture(len(surface))[nearest, None]
                 painted = np.zeros(len(points), bool) if paint is None else np.asarray(paint)[nearest]
@@ -243,7 +267,7 @@ class Renderer:
         z = self.rig.R[cam, 2] @ centre + self.rig.t[cam, 2]
         if z <= radius * 1.05:
             return np.ones(gx.shape, bool)
-        u, v = self.rig.subset([self.rig.ids[cam]]).project(centre[None])[0, 0]
+        u, v = self._single[cam].project(centre[None])[0, 0]
         # the circle's radius in pixels, with room for lens distortion near the image's edge
         r_px = 1.2 * self._focal(cam) * radius / np.sqrt(z * z - radius * radius) + 2
         return (np.abs(gx - u) <= r_px) & (np.abs(gy - v) <= r_px)

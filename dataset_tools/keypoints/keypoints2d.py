@@ -1,0 +1,159 @@
+"""Keypoints of every frame of every camera of a take, and the take's keypoints2d.h5.
+
+Frame groups across cameras come later (sync), so keypoints are kept per camera, indexed by the
+camera's own frame index (its rows of frames.csv):
+
+    keypoints2d.h5
+      attrs: format = "manus-capture keypoints2d", version = 1, model, model_file, box_source,
+             joint_names (21, MediaPipe order), take
+      cameras/CAM/keypoints   (F_cam,21,3) float32 [x, y, confidence], full-image pixels;
+                              NaN and confidence 0 where no hand was looked for or found
+      cameras/CAM/boxes       (F_cam,4) float32 the hand box each frame was cropped from (NaN: none)
+      cameras/CAM/angles      (F_cam,) float32 the hand-axis angle given with the box (NaN: searched)
+
+Boxes file (`--boxes`): an .npz with one array per camera id, (F_cam,4) x0,y0,x1,y1 or (F_cam,5)
+with the hand-axis angle (radians, see boxes.py) in the last column; NaN rows are frames without
+a hand. Without it, MediaPipe's palm detector finds the hand in every frame.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..fileio import write_atomic
+from ..take import Take, TakeError
+from .detector import Detector
+from .install import ModelError
+from .models import JOINT_NAMES, NUM_JOINTS
+
+FORMAT = "manus-capture keypoints2d"
+
+
+@dataclass
+class CameraKeypoints:
+    keypoints: np.ndarray   # (F,21,3)
+    boxes: np.ndarray       # (F,4)
+    angles: np.ndarray      # (F,)
+
+
+@dataclass
+class TakeKeypoints:
+    cameras: dict[str, CameraKeypoints]
+    model: str
+    model_file: str
+    box_source: str
+    attrs: dict = field(default_factory=dict)
+
+
+def load_boxes(path: str | Path, take: Take, cameras: Sequence[str]) -> dict[str, np.ndarray]:
+    """Read a boxes .npz: per camera (F_cam,5) [x0, y0, x1, y1, angle] with NaN angle where absent."""
+    path = Path(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise ModelError(f"{path}: no such boxes file") from None
+    except (ValueError, OSError) as exc:
+        raise ModelError(f"{path}: not a readable .npz of boxes ({exc})") from None
+    out = {}
+    with data:
+        for cam in cameras:
+            if cam not in data.files:
+                have = ", ".join(data.files) or "none"
+                raise ModelError(f"{path}: no boxes for camera {cam!r} (has {have})")
+            b = np.asarray(data[cam], dtype=np.float64)
+            frames = take.frame_count(cam)
+            if b.ndim != 2 or b.shape[1] not in (4, 5) or len(b) != frames:
+                raise ModelError(f"{path}: boxes of camera {cam} have shape {b.shape}, expected "
+                                 f"({frames}, 4) or ({frames}, 5) for its {frames} frames")
+            if b.shape[1] == 4:
+                b = np.concatenate([b, np.full((len(b), 1), np.nan)], axis=1)
+            out[cam] = b
+    return out
+
+
+def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | None = None,
+                cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
+                progress: Callable[[int], None] | None = None) -> dict[str, CameraKeypoints]:
+    """Keypoints of every frame of the given cameras (default: all), `chunk` frames per network call.
+
+    boxes: per camera (F,5) as load_boxes gives; None: the palm detector finds one hand per frame.
+    progress(n) is called after every n frames.
+    """
+    result = {}
+    for cam in cameras or take.cameras:
+        F = take.frame_count(cam)
+        kp = np.full((F, NUM_JOINTS, 3), np.nan, np.float32)
+        kp[..., 2] = 0
+        used = np.full((F, 5), np.nan)
+        batch: list[tuple[int, np.ndarray]] = []
+
+        def flush() -> None:
+            index = [k for k, _ in batch]
+            images = [im for _, im in batch]
+            if boxes is None:
+                found_boxes, found_angles = detector.find_boxes(images, 1, min_score)
+                given = np.full((len(batch), 5), np.nan)
+                for i, (fb, fa) in enumerate(zip(found_boxes, found_angles)):
+                    if len(fb):
+                        given[i] = np.r_[fb[0], fa[0]]
+            else:
+                given = boxes[cam][index]
+            out = detector.detect_many(images, [g[None, :4] for g in given], [g[None, 4] for g in given])
+            kp[index] = np.concatenate(out)
+            used[index] = given
+            if progress:
+                progress(len(batch))
+            batch.clear()
+
+        for k, image in take.iter_frames(cam):
+            batch.append((k, image))
+            if len(batch) == chunk:
+                flush()
+        if batch:
+            flush()
+        result[cam] = CameraKeypoints(kp, used[:, :4].astype(np.float32), used[:, 4].astype(np.float32))
+    return result
+
+
+def write_keypoints_h5(path: str | Path, data: TakeKeypoints) -> None:
+    """Write keypoints2d.h5 atomically: built in memory (a take's keypoints are megabytes), then
+    written beside the target and renamed."""
+    import h5py
+
+    buffer = io.BytesIO()
+    with h5py.File(buffer, "w") as f:
+        f.attrs.update({"format": FORMAT, "version": 1, "model": data.model,
+                        "model_file": data.model_file, "box_source": data.box_source,
+                        "joint_names": list(JOINT_NAMES), **data.attrs})
+        group = f.create_group("cameras")
+        for cam, ck in data.cameras.items():
+            g = group.create_group(cam)
+            g.create_dataset("keypoints", data=ck.keypoints.astype(np.float32), compression="gzip")
+            g.create_dataset("boxes", data=ck.boxes.astype(np.float32), compression="gzip")
+            g.create_dataset("angles", data=ck.angles.astype(np.float32), compression="gzip")
+    write_atomic(path, buffer.getvalue())
+
+
+def read_keypoints_h5(path: str | Path) -> TakeKeypoints:
+    """Read keypoints2d.h5; TakeError naming the file when it is not one."""
+    import h5py
+
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("format") != FORMAT:
+                raise TakeError(f"{path}: not a keypoints2d file "
+                                f"(format attribute {f.attrs.get('format')!r})")
+            cams = {cam: CameraKeypoints(g["keypoints"][()], g["boxes"][()], g["angles"][()])
+                    for cam, g in f["cameras"].items()}
+            attrs = {k: v for k, v in f.attrs.items()
+                     if k not in ("model", "model_file", "box_source")}
+            return TakeKeypoints(cams, str(f.attrs["model"]), str(f.attrs["model_file"]),
+                                 str(f.attrs["box_source"]), attrs)
+    except (FileNotFoundError, OSError) as exc:
+        raise TakeError(f"{path}: cannot be read as HDF5 ({exc})") from None

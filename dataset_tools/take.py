@@ -1,0 +1,169 @@
+"""Read-only access to a recorded take folder (DESIGN.md, "On disk").
+
+    TAKE/take.json      kind, cameras, fps, resolution, sync mode, start/stop, status, LED log
+    TAKE/frames.csv     one row per received frame: cam, seq, t_device_ns, t_host_ns, bytes, flags
+    TAKE/cams/CAM.mkv   one MJPEG stream per camera, frames in the order of their frames.csv rows
+
+A camera's *frame index* k is its k-th row in frames.csv and its k-th packet in CAM.mkv. Frames are
+read as raw JPEG packets (no decoding while skipping) and decoded with OpenCV only when asked for.
+Every error names the file and what is wrong (TakeError, exit code 2 in the CLI).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+FRAME_COLUMNS = ("cam", "seq", "t_device_ns", "t_host_ns", "bytes", "flags")
+INT_COLUMNS = ("seq", "t_device_ns", "t_host_ns", "bytes")
+
+
+class TakeError(ValueError):
+    """A take folder or one of its files that cannot be read; names the file and the problem."""
+
+    exit_code = 2
+
+
+class Take:
+    """A take folder. `cameras` come from take.json (ids, or objects with an "id")."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        meta_path = self.path / "take.json"
+        if not self.path.is_dir():
+            raise TakeError(f"{self.path}: no such take folder")
+        try:
+            self.meta: dict = json.loads(meta_path.read_text())
+        except FileNotFoundError:
+            raise TakeError(f"{meta_path}: missing (not a take folder)") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise TakeError(f"{meta_path}: not valid JSON ({exc})") from None
+        if not isinstance(self.meta, dict):
+            raise TakeError(f"{meta_path}: expected a JSON object")
+        cams = self.meta.get("cameras")
+        if not isinstance(cams, list) or not cams:
+            raise TakeError(f"{meta_path}: cameras: expected a non-empty list of camera ids")
+        try:
+            self.cameras: tuple[str, ...] = tuple(str(c["id"] if isinstance(c, dict) else c) for c in cams)
+        except KeyError:
+            raise TakeError(f"{meta_path}: cameras: an entry has no 'id'") from None
+        self._frames: dict[str, np.ndarray] | None = None
+
+    @property
+    def fps(self) -> float | None:
+        fps = self.meta.get("fps")
+        return float(fps) if isinstance(fps, (int, float)) else None
+
+    @property
+    def frames(self) -> dict[str, np.ndarray]:
+        """frames.csv as columns: cam (str), seq, t_device_ns, t_host_ns, bytes (int64), flags."""
+        if self._frames is None:
+            self._frames = _read_frames_csv(self.path / "frames.csv")
+        return self._frames
+
+    def camera_frames(self, cam: str) -> dict[str, np.ndarray]:
+        """The frames.csv rows of one camera, in order: row k is frame index k."""
+        self._check_camera(cam)
+        mine = self.frames["cam"] == cam
+        return {k: v[mine] for k, v in self.frames.items()}
+
+    def frame_count(self, cam: str) -> int:
+        self._check_camera(cam)
+        return int(np.count_nonzero(self.frames["cam"] == cam))
+
+    def video_path(self, cam: str) -> Path:
+        self._check_camera(cam)
+        path = self.path / "cams" / f"{cam}.mkv"
+        if not path.is_file():
+            raise TakeError(f"{path}: missing (camera {cam} of take.json has no video)")
+        return path
+
+    def packets(self, cam: str) -> Iterator[np.ndarray]:
+        """The JPEG packets of a camera's video, in order, undecoded (1-D uint8 arrays)."""
+        path = self.video_path(cam)
+        cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_FORMAT, -1])
+        if not cap.isOpened():
+            raise TakeError(f"{path}: cannot be opened as a video (corrupt or not Matroska/MJPEG)")
+        try:
+            while True:
+                ok, packet = cap.read()
+                if not ok:
+                    return
+                yield packet.reshape(-1)
+        finally:
+            cap.release()
+
+    def iter_frames(self, cam: str, start: int = 0, stop: int | None = None,
+                    step: int = 1) -> Iterator[tuple[int, np.ndarray]]:
+        """(k, image (H,W,3) BGR uint8) for frame indices start, start+step, ... < stop.
+
+        Skipped frames are not decoded. A video that ends before `stop` (or before its frames.csv
+        rows when stop is None) raises TakeError naming the file and both counts.
+        """
+        expected = self.frame_count(cam) if stop is None else stop
+        path = self.video_path(cam)
+        k = -1
+        for k, packet in enumerate(self.packets(cam)):
+            if k >= expected:
+                return
+            if k >= start and (k - start) % step == 0:
+                yield k, _decode(packet, path, k)
+        if k + 1 < expected:
+            raise TakeError(f"{path}: has {k + 1} frames, frames.csv (or the request) needs {expected}")
+
+    def read_frame(self, cam: str, k: int) -> np.ndarray:
+        """Frame index k of a camera, (H,W,3) BGR uint8."""
+        count = self.frame_count(cam)
+        if not 0 <= k < count:
+            raise TakeError(f"{self.path / 'frames.csv'}: camera {cam} has no frame {k} ({count} frames)")
+        # iter_frames raises TakeError when the video is shorter, so there is always one frame.
+        return next(image for _, image in self.iter_frames(cam, k, k + 1))
+
+    def _check_camera(self, cam: str) -> None:
+        if cam not in self.cameras:
+            raise TakeError(f"{self.path / 'take.json'}: no camera {cam!r} "
+                            f"(cameras: {', '.join(self.cameras)})")
+
+
+def _decode(packet: np.ndarray, path: Path, k: int) -> np.ndarray:
+    image = cv2.imdecode(packet, cv2.IMREAD_COLOR)
+    if image is None:
+        raise TakeError(f"{path}: frame {k} is not a decodable JPEG ({packet.size} bytes)")
+    return image
+
+
+def _read_frames_csv(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except FileNotFoundError:
+        raise TakeError(f"{path}: missing") from None
+    if not rows:
+        raise TakeError(f"{path}: empty (no header)")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in FRAME_COLUMNS if c not in header]
+    if missing:
+        raise TakeError(f"{path}: missing column(s) {', '.join(missing)} (header: {','.join(header)})")
+    body = rows[1:]
+    short = next((i for i, r in enumerate(body) if len(r) != len(header)), None)
+    if short is not None:
+        raise TakeError(f"{path}: line {short + 2} has {len(body[short])} fields, the header {len(header)}")
+    table = np.array(body, dtype=str).reshape(len(body), len(header))
+    out: dict[str, np.ndarray] = {}
+    for name in header:
+        column = np.char.strip(table[:, header.index(name)])
+        if name in INT_COLUMNS:
+            try:
+                out[name] = column.astype(np.int64)
+            except ValueError:
+                bad = next(i for i, v in enumerate(column) if not v.lstrip("-").isdigit())
+                raise TakeError(f"{path}: line {bad + 2}: {name} is not an integer "
+                                f"({column[bad]!r})") from None
+        else:
+            out[name] = column
+    return out

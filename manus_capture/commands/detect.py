@@ -1,0 +1,71 @@
+"""`manus-capture detect`: 2D hand keypoints in every frame of every camera of a take."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import click
+
+
+class OutputExists(FileExistsError):
+    exit_code = 2
+
+
+@click.command("detect", context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("take", type=click.Path(path_type=Path))
+@click.option("--model", "model_name", default="mediapipe-hand", show_default=True,
+              help="mediapipe-hand, mediapipe-hand-lite, or a SimCC/heatmap model spec (.toml).")
+@click.option("--boxes", "boxes_path", type=click.Path(path_type=Path), default=None,
+              help="Hand boxes per camera and frame (.npz: CAM -> (F,4) or (F,5) with the hand angle). "
+                   "Default: MediaPipe's palm detector finds the hand.")
+@click.option("--cameras", default=None, help="Comma-separated camera ids (default: all of the take).")
+@click.option("-o", "--output", type=click.Path(path_type=Path), default=None,
+              help="Output file (default: TAKE/keypoints2d.h5).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+              help="onnxruntime provider: CUDA when available (auto), or forced.")
+@click.option("--chunk", type=click.IntRange(1), default=16, show_default=True,
+              help="Frames per network call.")
+@click.option("--min-score", type=click.FloatRange(0, 1), default=0.5, show_default=True,
+              help="Palm detector score threshold.")
+@click.option("--force", is_flag=True, help="Overwrite an existing output file.")
+def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str | None, output: Path | None,
+            device: str, chunk: int, min_score: float, force: bool) -> None:
+    """Detect 2D hand keypoints (21 joints, MediaPipe order) in every view of TAKE.
+
+    Writes TAKE/keypoints2d.h5: per camera, keypoints (F,21,3) [x, y, confidence] indexed by the
+    camera's frame index (its rows of frames.csv), and the boxes used. See docs/keypoints.md.
+    """
+    from tqdm import tqdm
+
+    from dataset_tools.keypoints import hand_keypoint_detector
+    from dataset_tools.keypoints.keypoints2d import (TakeKeypoints, detect_take, load_boxes,
+                                                     write_keypoints_h5)
+    from dataset_tools.take import Take
+
+    from .. import __version__
+
+    tk = Take(take)
+    output = output or tk.path / "keypoints2d.h5"
+    if output.exists() and not force:
+        raise OutputExists(f"{output}: exists (use --force to overwrite)")
+    cams = tuple(c.strip() for c in cameras.split(",")) if cameras else tk.cameras
+    for cam in cams:
+        tk.video_path(cam)  # every requested camera's video must exist before hours of work start
+    boxes = load_boxes(boxes_path, tk, cams) if boxes_path else None
+    detector = hand_keypoint_detector(model_name, device=device)
+    total = sum(tk.frame_count(c) for c in cams)
+    start = time.perf_counter()
+    with tqdm(total=total, unit="frame", desc="detect", file=sys.stderr) as bar:
+        result = detect_take(tk, detector, boxes, cams, chunk=chunk, min_score=min_score, progress=bar.update)
+    elapsed = time.perf_counter() - start
+    write_keypoints_h5(output, TakeKeypoints(
+        result, detector.name, str(detector.model.session.path),
+        f"file:{boxes_path}" if boxes_path else "palm-detector",
+        {"take": str(tk.path), "software": f"manus-capture {__version__}",
+         "providers": ",".join(detector.providers)}))
+    found = sum(int((r.keypoints[:, 0, 2] > 0.5).sum()) for r in result.values())
+    click.echo(f"{output}: {len(cams)} cameras, {total} frames, hand found (confidence > 0.5) in "
+               f"{found} ({100 * found / max(total, 1):.1f}%), {elapsed:.1f} s "
+               f"({total / max(elapsed, 1e-9):.1f} frames/s, {detector.providers[0]})")

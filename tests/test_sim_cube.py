@@ -1,0 +1,186 @@
+"""The simulated cube as a camera backend: clocks, drops, triggers, lighting and ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+
+from rig.cameras import Camera, CameraError
+from rig.config import SimCameraConfig
+from rig.layouts import make_rig
+from rig.sim.clocks import CameraClock
+from rig.sim.cube import SimulatedCube, true_cameras
+from rig.sim.render import LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL_WALLS
+
+
+def small_rig(cameras=4, resolution=(96, 54), sync="free-run", **sim):
+    rig = make_rig("cube53", cameras=cameras, resolution=resolution, sync=sync, seed=5)
+    return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, **sim))
+
+
+def with_camera_params(rig, **params):
+    cams = tuple(dataclasses.replace(c, sim=dataclasses.replace(c.sim, **params)) for c in rig.cameras)
+    return dataclasses.replace(rig, cameras=cams)
+
+
+def test_clock_model_follows_offset_drift_and_jitter():
+    p = SimCameraConfig(position=(0, 0, 0), clock_offset_ms=3.2, drift_ppm=-41.0, phase_ms=2.0,
+                        timestamp_jitter_us=25.0, latency_ms=2.5, latency_jitter_ms=0.3, drop_rate=0.02)
+    clock = CameraClock(p, fps=120.0, index=3, seed=11, t0_ns=10**12)
+    k = np.arange(60_000)  # 500 s of frames
+    exposure = clock.free_run_exposure_ns(k)
+    device = clock.device_ns(exposure, k)
+    slope, intercept = np.polyfit((exposure - 10**12) / 1e9, (device - exposure) / 1e3, 1)  # us, us/s
+    assert slope == pytest.approx(-41.0, abs=0.2)              # drift in ppm (= us per s)
+    assert intercept == pytest.approx(3200.0, abs=1.0)         # offset in us
+    residual = (device - exposure) / 1e3 - (slope * (exposure - 10**12) / 1e9 + intercept)
+    assert residual.std() == pytest.approx(25.0, rel=0.03)     # timestamp jitter
+    # the oscillator's drift shows in the frame interval too
+    assert np.diff(exposure).mean() == pytest.approx(1e9 / 120 / (1 - 41e-6), rel=1e-9)
+    host = clock.host_ns(exposure, k, exposure_us=2000)
+    latency = (host - exposure) / 1e6
+    assert latency.min() >= 3.5 - 1e-6 and latency.mean() == pytest.approx(3.8, abs=0.01)
+    assert clock.dropped(k).mean() == pytest.approx(0.02, abs=0.002)  # 3.9 sigma at n = 60000
+    # frame timing is a pure function of the frame number
+    assert np.array_equal(clock.device_ns(exposure[::-1], k[::-1]), device[::-1])
+
+
+def test_camera_stream_drops_are_gaps_and_all_in_ground_truth(tmp_path):
+    rig = with_camera_params(small_rig(), drop_rate=0.08)
+    cube = SimulatedCube(rig, "calibration", duration_s=1.0)
+    cams = [cube.camera(c.id) for c in rig.cameras]
+    assert all(isinstance(c, Camera) for c in cams)
+    seqs = []
+    for cam in cams:
+        cam.open(); cam.configure(); cam.start()
+        frames = [cam.read() for _ in range(60)]
+        seqs.append(np.array([f.seq for f in frames]))
+        host = np.array([f.t_host_ns for f in frames])
+        assert np.all(np.diff(host) > 0)
+        image = cv2.imdecode(np.frombuffer(frames[0].data, np.uint8), cv2.IMREAD_COLOR)
+        assert image.shape == (54, 96, 3) and frames[0].encoding == "jpeg"
+        cam.stop(); cam.close()
+    cube.write_ground_truth(tmp_path / "ground_truth.h5")
+    with h5py.File(tmp_path / "ground_truth.h5") as f:
+        dropped = f["frames/dropped"][()]
+        exposure = f["frames/exposure_mid_ns"][()]
+        assert [x.decode() if isinstance(x, bytes) else x for x in f["cameras/ids"][()]] == [c.id for c in rig.cameras]
+    n_drops = 0
+    for c, seq in enumerate(seqs):
+        received = np.zeros(seq.max() + 1, bool)
+        received[seq] = True
+        assert np.array_equal(~received, dropped[c, :seq.max() + 1])  # every gap is a recorded drop
+        n_drops += (~received).sum()
+        assert np.all(exposure[c, :seq.max() + 1] > 0)
+    assert n_drops > 5  # at 8% over ~260 frames
+
+
+def test_triggered_cameras_expose_together_free_running_ones_do_not():
+    spreads = {}
+    for mode in ("free-run", "software-trigger", "hardware-trigger"):
+        rig = small_rig(cameras=6, resolution=(32, 18), sync=mode)
+        cube = SimulatedCube(rig, "calibration", duration_s=1.0)
+        cams = [cube.camera(c.id) for c in rig.cameras]
+        for cam in cams:
+            cam.open(); cam.start()
+        for k in range(12):
+            if mode == "software-trigger":
+                cube.clock.sleep_until_ns(int(cube.tick_ns(k)))
+                for cam in cams:
+                    cam.trigger()
+            for cam in cams:
+                cam.read(timeout_s=0.01)  # None only where the frame of this trigger was dropped
+        exposure = np.array([[e for _, e, _ in recs][:10] for recs in cube.records], float)
+        spreads[mode] = np.ptp(exposure, axis=0).max() / 1e6
+    assert spreads["hardware-trigger"] < 0.01
+    assert spreads["software-trigger"] < 0.5     # trigger latency differences, a fraction of a ms
+    assert spreads["free-run"] > 1.0            # random phases over an 8.3 ms period
+
+
+def test_software_trigger_without_trigger_times_out():
+    rig = small_rig(cameras=1, resolution=(32, 18), sync="software-trigger")
+    cam = SimulatedCube(rig, "calibration").camera(rig.cameras[0].id)
+    with pytest.raises(CameraError):
+        cam.read()
+    cam.open(); cam.start()
+    assert cam.read(timeout_s=0.01) is None
+
+
+def test_led_flash_shows_in_the_images():
+    rig = small_rig(cameras=1, resolution=(64, 36))
+    flash_from = 0.1
+    cube = SimulatedCube(rig, "calibration", lighting=lambda t_ns: 1.0)
+    cube.lighting = lambda t_ns: 1.0 if (t_ns - cube.t0_ns) / 1e9 >= flash_from else 0.3
+    cam = cube.camera(rig.cameras[0].id)
+    cam.open(); cam.start()
+    frames = [cam.read() for _ in range(24)]
+    level = np.array([cv2.imdecode(np.frombuffer(f.data, np.uint8), 0).mean() for f in frames])
+    exposure = np.array([e for _, e, d in cube.records[0] if not d], float)[:24]
+    lit = (exposure - cube.t0_ns) / 1e9 >= flash_from
+    assert lit.any() and (~lit).any()
+    assert level[lit].min() > 1.5 * level[~lit].max()
+
+
+@pytest.fixture(scope="module")
+def grasp_truth(tmp_path_factory):
+    rig = small_rig(cameras=6, resolution=(160, 90), paint=True, object="mug")
+    # a short take keeps the suite fast; the motion's phases scale with the duration
+    cube = SimulatedCube(rig, "grasp", duration_s=0.25)
+    for c in rig.cameras:
+        cam = cube.camera(c.id)
+        cam.open(); cam.start()
+        for _ in range(30):
+            cam.read()
+    path = tmp_path_factory.mktemp("grasp") / "ground_truth.h5"
+    hold = int(0.125 * rig.fps)  # the grasp holds the object at mid-take
+    cube.write_ground_truth(path, label_frames=[hold])
+    return rig, path
+
+
+def test_grasp_ground_truth_is_complete(grasp_truth):
+    rig, path = grasp_truth
+    cams = true_cameras(rig)
+    with h5py.File(path) as f:
+        F = f["frames/exposure_mid_ns"].shape[1]
+        assert F >= 30
+        assert f["hand/joints3d"].shape == (F, 21, 3) and f["hand/joint_angles"].shape == (F, 26)
+        assert f["hand/bone_lengths"].shape == (20,)
+        assert np.allclose(f["cameras/K"][()], cams.K) and np.allclose(f["cameras/t"][()], cams.t)
+        P = f["contact/points_rest"].shape[0]
+        assert f["contact/instant"].shape == (F, P)
+        accumulated = f["contact/accumulated"][()]
+        assert 0 < accumulated.sum() < P // 4
+        assert np.array_equal(accumulated, f["contact/instant"][()].any(axis=0) | accumulated)
+        labels = f["labels/image"][()]
+        assert labels.shape == (len(cams), 1, 90, 160)
+        seen = np.bincount(labels.ravel(), minlength=5)
+        assert seen[LABEL_HAND] > 100 and seen[LABEL_OBJECT] > 100 and seen[LABEL_WALLS] > 0
+        # the hand's true joints project inside its labelled pixels in most views
+        hold = f["labels/frames"][0]
+        uv = cams.project(f["hand/joints3d"][hold])
+    inside = []
+    for c in range(len(cams)):
+        x, y = np.round(uv[c]).astype(int).T
+        ok = (x >= 0) & (x < 160) & (y >= 0) & (y < 90)
+        inside.append(np.isin(labels[c, 0][y[ok], x[ok]], [LABEL_HAND, LABEL_PAINT, LABEL_OBJECT]).mean())
+    assert np.median(inside) > 0.8
+
+
+def test_canonical_take_shows_the_paint(tmp_path):
+    rig = small_rig(cameras=6, resolution=(160, 90), paint=True, object="mug")
+    cube = SimulatedCube(rig, "canonical", duration_s=0.5)
+    for c in rig.cameras:
+        cam = cube.camera(c.id)
+        cam.open(); cam.start()
+        for _ in range(3):
+            cam.read()
+    cube.write_ground_truth(tmp_path / "gt.h5", label_frames=[1])
+    with h5py.File(tmp_path / "gt.h5") as f:
+        labels = f["labels/image"][()]
+        assert f["contact/accumulated"][()].sum() > 0
+    assert (labels == LABEL_PAINT).sum() > 20
+    assert (labels == LABEL_OBJECT).sum() == 0

@@ -1,0 +1,294 @@
+"""MANUS-Hand: articulated 3D Gaussians of a hand, posed by the 26-DOF skeleton.
+
+The model lives in the canonical (rest) frame of dataset_tools.hand.skeleton:
+
+- canonical Gaussians, initialized around every bone: a normal distribution centred at the
+  bone's midpoint, spread by the bone's length (`spread` times the length along the bone, at
+  most `radius` across it, as fingers are thinner than they are long);
+- skinning weights on a canonical voxel grid (20 bones x G^3), initialized one-hot from the
+  nearest bone of each voxel centre, smoothed by a few 3x3x3 box filters and kept only for
+  bones that share a joint with the nearest one (fingers never blend); a Gaussian's
+  weights are sampled trilinearly at its canonical centre and renormalized to sum to one, so
+  they follow the Gaussians through densification without per-Gaussian bookkeeping;
+- posing: the skeleton's forward kinematics gives every bone's rigid motion (R_b, t_b); linear
+  blend skinning moves a centre to A x + sum_b w_b t_b with A = sum_b w_b R_b, and the
+  covariance becomes A Sigma A^T (the blended rotation; exactly a rotation when one bone owns
+  the Gaussian);
+- colour: view directions are taken back to the canonical frame (A^T d) before the spherical
+  harmonics are evaluated, so the colour sticks to the hand's surface rather than to the world.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from dataset_tools.hand.skeleton import BONES, HandSkeleton
+
+from .gaussians import Gaussians
+from .losses import LossWeights, load_lpips, psnr, ssim
+from .rasterize import rasterize
+from .sh import eval_sh
+from .strategy import DensifyStrategy
+from .trainer import LearningRates, Views, decay_means_lr, image_loss, make_optimizer
+
+N_BONES = 20
+
+
+def point_segment_distance(points: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distances (N,S) from points (N,3) to segments a (S,3) -> b (S,3)."""
+    ab = b - a
+    t = ((points[:, None, :] - a[None]) * ab[None]).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-12)
+    closest = a[None] + t.clamp(0, 1)[..., None] * ab[None]
+    return (points[:, None, :] - closest).norm(dim=-1)
+
+
+def bone_neighbours() -> torch.Tensor:
+    """(20,20) bool: bones that share a joint (a bone is its own neighbour).
+
+    Skinning only ever blends a bone with its neighbours: blending two fingers, which move
+    independently, would tear the Gaussians between them apart.
+    """
+    bones = torch.as_tensor(BONES, dtype=torch.long)
+    ends = bones[:, None, :, None] == bones[None, :, None, :]  # (20,20,2,2)
+    return ends.flatten(2).any(-1)
+
+
+def nearest_bone_grid(joints: torch.Tensor, grid_min: torch.Tensor, grid_max: torch.Tensor, resolution: int,
+                      smooth: int = 2) -> torch.Tensor:
+    """Skinning weights (20,G,G,G) indexed [bone, z, y, x] from the rest joints (21,3).
+
+    One-hot on each voxel centre's nearest bone, smoothed by `smooth` 3x3x3 box filters, then
+    restricted to the nearest bone's neighbours and normalized.
+    """
+    axes = [torch.linspace(float(grid_min[i]), float(grid_max[i]), resolution, dtype=joints.dtype) for i in range(3)]
+    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    centres = torch.stack([x, y, z], dim=-1).reshape(-1, 3)
+    bones = torch.as_tensor(BONES, dtype=torch.long)
+    nearest = point_segment_distance(centres, joints[bones[:, 0]], joints[bones[:, 1]]).argmin(dim=1)
+    grid = F.one_hot(nearest, N_BONES).T.to(joints.dtype).reshape(1, N_BONES, resolution, resolution, resolution)
+    box = torch.full((N_BONES, 1, 3, 3, 3), 1 / 27, dtype=joints.dtype)
+    for _ in range(smooth):
+        grid = F.conv3d(F.pad(grid, (1,) * 6, mode="replicate"), box, groups=N_BONES)
+    allowed = bone_neighbours()[nearest].T.reshape(N_BONES, resolution, resolution, resolution)
+    grid = grid[0] * allowed
+    return grid / grid.sum(0, keepdim=True).clamp_min(1e-12)
+
+
+def sample_around_bones(joints: torch.Tensor, per_bone: int, spread: float, radius: float, margin: float,
+                        generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """per_bone points around each bone's midpoint: (points (20*per_bone,3), bone (20*per_bone,)).
+
+    Normal with a standard deviation of spread * length along the bone and min(spread * length,
+    radius) across it, truncated at two standard deviations; a sample is drawn again when it
+    lies closer than `margin` to being nearer another finger's bone than its own, so no
+    Gaussian starts where the skinning weights of two independent fingers meet.
+    """
+    bones = torch.as_tensor(BONES, dtype=torch.long)
+    a, b = joints[bones[:, 0]], joints[bones[:, 1]]
+    axis = b - a
+    length = axis.norm(dim=-1, keepdim=True)
+    u = axis / length
+    helper = torch.where(u[:, 2:3].abs() < 0.9, torch.tensor([0.0, 0.0, 1.0]), torch.tensor([1.0, 0.0, 0.0]))
+    v = torch.linalg.cross(u, helper)
+    v = v / v.norm(dim=-1, keepdim=True)
+    w = torch.linalg.cross(u, v)
+    sd = torch.cat([spread * length, (spread * length).clamp_max(radius).expand(-1, 2)], dim=-1)  # (20,3)
+    frame = torch.stack([u, v, w], dim=-1)  # columns: along, across, across
+    foreign = ~bone_neighbours()
+    points = torch.empty(N_BONES, per_bone, 3)
+    todo = torch.ones(N_BONES, per_bone, dtype=torch.bool)
+    for _ in range(100):
+        k = int(todo.sum())
+        if k == 0:
+            break
+        owner = torch.nonzero(todo)[:, 0]
+        z = torch.randn(k, 3, generator=generator)
+        p = (a[owner] + b[owner]) / 2 + torch.einsum("kij,kj->ki", frame[owner], z * sd[owner])
+        d = point_segment_distance(p, a, b)  # (k,20)
+        own = d.gather(1, owner[:, None])[:, 0]
+        other = torch.where(foreign[owner], d, torch.inf).amin(dim=1)
+        ok = (z.norm(dim=-1) <= 2.0) & (own + margin <= other)
+        idx = torch.nonzero(todo)
+        points[idx[ok, 0], idx[ok, 1]] = p[ok]
+        todo[idx[ok, 0], idx[ok, 1]] = False
+    if bool(todo.any()):
+        raise ValueError("could not place the hand's Gaussians: bones too close for the requested spread")
+    return points.reshape(-1, 3), torch.arange(N_BONES).repeat_interleave(per_bone)
+
+
+class HandGaussians(torch.nn.Module):
+    """Canonical Gaussians, a skinning-weight grid and the skeleton that poses them."""
+
+    def __init__(self, gaussians: Gaussians, skin_grid: torch.Tensor, grid_min: torch.Tensor,
+                 grid_max: torch.Tensor, bone_lengths=None) -> None:
+        super().__init__()
+        self.gaussians = gaussians
+        self.skin_grid = torch.nn.Parameter(skin_grid.detach().clone())
+        self.register_buffer("grid_min", torch.as_tensor(grid_min, dtype=skin_grid.dtype).clone())
+        self.register_buffer("grid_max", torch.as_tensor(grid_max, dtype=skin_grid.dtype).clone())
+        self.skeleton = HandSkeleton(bone_lengths)
+
+    @classmethod
+    def initialize(cls, bone_lengths=None, per_bone: int = 200, spread: float = 0.25, radius: float = 0.007,
+                   margin: float = 0.006, sh_degree: int = 3, resolution: int = 64, padding: float = 0.02,
+                   smooth: int = 2, colour=(0.8, 0.6, 0.5), opacity: float = 0.5,
+                   seed: int = 0) -> "HandGaussians":
+        """A fresh model around the rest skeleton (see sample_around_bones and nearest_bone_grid);
+        lengths in metres. `margin` should exceed the grid's voxel diagonal (about 5 mm at the
+        default resolution), or trilinear sampling blends two fingers at their boundary."""
+        skeleton = HandSkeleton(bone_lengths)
+        joints = torch.as_tensor(skeleton.rest_joints(), dtype=torch.float32)
+        gen = torch.Generator().manual_seed(seed)
+        means, _ = sample_around_bones(joints, per_bone, spread, radius, margin, gen)
+        colours = torch.tensor(colour, dtype=torch.float32).expand(len(means), 3)
+        gaussians = Gaussians.from_points(means, colours, sh_degree, opacity=opacity)
+        lo = torch.minimum(means.min(0).values, joints.min(0).values) - padding
+        hi = torch.maximum(means.max(0).values, joints.max(0).values) + padding
+        grid = nearest_bone_grid(joints, lo, hi, resolution, smooth)
+        return cls(gaussians, grid, lo, hi, skeleton.bone_lengths)
+
+    def __len__(self) -> int:
+        return len(self.gaussians)
+
+    def skinning_weights(self, points: torch.Tensor | None = None) -> torch.Tensor:
+        """Weights (N,20) at canonical points (default: the Gaussians' centres), summing to one."""
+        points = self.gaussians.means if points is None else points
+        unit = 2 * (points - self.grid_min) / (self.grid_max - self.grid_min) - 1  # x, y, z in [-1, 1]
+        grid = self.skin_grid.clamp_min(0)[None]  # (1,20,G,G,G)
+        w = F.grid_sample(grid, unit.reshape(1, -1, 1, 1, 3).to(grid.dtype), mode="bilinear",
+                          padding_mode="border", align_corners=True)  # trilinear for 5D input
+        w = w.reshape(N_BONES, -1).T
+        return w / w.sum(-1, keepdim=True).clamp_min(1e-8)
+
+    def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Posed centres (N,3), covariances (N,3,3) and blended linear maps A (N,3,3) for angles (26,)."""
+        g = self.gaussians
+        angles = torch.as_tensor(angles, dtype=g.means.dtype, device=g.means.device)
+        R, t = self.skeleton.bone_transforms(angles)  # (20,3,3), (20,3)
+        w = self.skinning_weights()
+        A = torch.einsum("nb,bij->nij", w, R.to(w.dtype))
+        means = torch.einsum("nij,nj->ni", A, g.means) + w @ t.to(w.dtype)
+        covars = A @ g.covariances() @ A.transpose(1, 2)
+        return {"means": means, "covars": covars, "A": A, "weights": w}
+
+    def render(self, angles: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+               background: torch.Tensor | None = None, sh_degree: int | None = None, **kwargs):
+        """rasterize() of the hand posed by `angles` (26,) into C cameras."""
+        g = self.gaussians
+        posed = self.pose(angles)
+        R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
+        centres = -torch.einsum("cji,cj->ci", R, t)
+        dirs_world = posed["means"][None] - centres[:, None]  # (C,N,3)
+        dirs = torch.einsum("nji,cnj->cni", posed["A"], dirs_world)  # A^T d: back to canonical
+        colours = eval_sh(g.sh_degree if sh_degree is None else sh_degree, g.sh[None].expand(len(viewmats), -1, -1, -1),
+                          dirs)
+        return rasterize(posed["means"], None, None, g.opacities, colours, viewmats, Ks, width, height,
+                         background=background, covars=posed["covars"], **kwargs)
+
+    def extra_tensors(self) -> dict[str, torch.Tensor]:
+        """What a checkpoint stores beside the Gaussians (see checkpoint.py)."""
+        return {"skin_grid": self.skin_grid.detach(), "grid_min": self.grid_min, "grid_max": self.grid_max,
+                "bone_lengths": torch.as_tensor(self.skeleton.bone_lengths, dtype=torch.float32)}
+
+    @classmethod
+    def from_checkpoint(cls, gaussians: Gaussians, extra: dict[str, torch.Tensor]) -> "HandGaussians":
+        return cls(gaussians, extra["skin_grid"], extra["grid_min"], extra["grid_max"],
+                   extra["bone_lengths"].double().numpy())
+
+
+@dataclass
+class HandConfig:
+    """Settings of `train_hand`."""
+
+    iterations: int = 10_000
+    sh_degree: int = 3
+    sh_increase_every: int = 1000
+    lr: LearningRates = field(default_factory=lambda: LearningRates(means=1.6e-4, means_final=1.6e-6))
+    skin_lr: float = 1e-3
+    weights: LossWeights = field(default_factory=LossWeights)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    densify: DensifyStrategy | None = field(default_factory=DensifyStrategy)
+    lpips_weights: str | None = None
+    lpips_net: str = "alex"
+    chunk_elements: int = 1 << 21
+    seed: int = 0
+
+
+def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], config: HandConfig | None = None,
+               progress: bool = True) -> list[dict[str, float]]:
+    """Fit a MANUS-Hand model to views of the hand in several poses; returns the loss history.
+
+    poses (P,26) joint angles; views[p] the calibrated images (with hand masks when known) of
+    pose p. Every step renders one view of one pose. The model is changed in place.
+    """
+    from tqdm import tqdm
+
+    cfg = config or HandConfig()
+    gen = torch.Generator().manual_seed(cfg.seed)
+    bg = torch.tensor(cfg.background, dtype=torch.float32)
+    targets = [v.targets(bg) for v in views]
+    scene_scale = float(model.skeleton.bone_lengths.sum() / 5)  # about one finger's length
+    lpips = load_lpips(cfg.lpips_weights, cfg.lpips_net) if cfg.weights.lpips > 0 else None
+    # skin_lr = 0 keeps the initial weights (and saves the Adam update of the whole grid).
+    model.skin_grid.requires_grad_(cfg.skin_lr > 0)
+    extra = [{"params": [model.skin_grid], "name": "skin_grid", "lr": cfg.skin_lr}] if cfg.skin_lr > 0 else []
+    optimizer = make_optimizer(model.gaussians, cfg.lr, scene_scale, extra=extra)
+    strategy = None if cfg.densify is None else replace(cfg.densify, scene_scale=scene_scale)
+    history = []
+    bar = tqdm(range(1, cfg.iterations + 1), desc="hand", unit="it", file=sys.stderr, disable=not progress)
+    for step in bar:
+        p = int(torch.randint(len(views), (1,), generator=gen))
+        v = int(torch.randint(len(views[p]), (1,), generator=gen))
+        decay_means_lr(optimizer, cfg.lr, scene_scale, step, cfg.iterations)
+        degree = min(cfg.sh_degree, step // cfg.sh_increase_every)
+        view = views[p]
+        rgb, _, meta = model.render(poses[p], view.viewmats[v:v + 1], view.Ks[v:v + 1], view.width, view.height,
+                                    bg, sh_degree=degree, return_meta=True, chunk_elements=cfg.chunk_elements)
+        loss, parts = image_loss(rgb, targets[p][v:v + 1], model.gaussians.scales, cfg.weights, lpips)
+        if strategy is not None:
+            strategy.before_backward(meta)
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        record = {"step": step, "loss": float(loss), "n": len(model), **parts}
+        if strategy is not None:
+            record.update(strategy.after_backward(model.gaussians, optimizer, meta, step))
+        history.append(record)
+        if step % 10 == 0 or step == cfg.iterations:
+            bar.set_postfix(loss=f"{record['loss']:.4f}", n=len(model))
+    return history
+
+
+@torch.no_grad()
+def evaluate_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views],
+                  background=(0.0, 0.0, 0.0)) -> dict[str, float]:
+    """Mean PSNR (dB) and SSIM over every view of every given pose."""
+    bg = torch.tensor(background, dtype=torch.float32)
+    scores = {"psnr": [], "ssim": []}
+    for p, view in enumerate(views):
+        rgb, _ = model.render(poses[p], view.viewmats, view.Ks, view.width, view.height, bg)
+        pred, target = rgb.clamp(0, 1).permute(0, 3, 1, 2), view.targets(bg).permute(0, 3, 1, 2)
+        for i in range(len(view)):
+            scores["psnr"].append(float(psnr(pred[i:i + 1], target[i:i + 1])))
+            scores["ssim"].append(float(ssim(pred[i:i + 1], target[i:i + 1])))
+    return {k: sum(v) / len(v) for k, v in scores.items()}
+
+
+def random_poses(n: int, skeleton: HandSkeleton, generator: torch.Generator, rotation: float = math.pi,
+                 translation: float = 0.1) -> torch.Tensor:
+    """n poses (n,26) uniform within the skeleton's joint limits, with a random global rotation
+    (angle up to `rotation`) and translation (up to `translation` metres per axis)."""
+    lo = torch.as_tensor(np.where(np.isfinite(skeleton.lower), skeleton.lower, 0.0), dtype=torch.float32)
+    hi = torch.as_tensor(np.where(np.isfinite(skeleton.upper), skeleton.upper, 0.0), dtype=torch.float32)
+    angles = lo + (hi - lo) * torch.rand(n, 26, generator=generator)
+    axis = torch.randn(n, 3, generator=generator)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    angles[:, 0:3] = axis * rotation * torch.rand(n, 1, generator=generator)
+    angles[:, 3:6] = (torch.rand(n, 3, generator=generator) * 2 - 1) * translation
+    return angles

@@ -1,0 +1,198 @@
+"""Training losses and image metrics: L1, SSIM, PSNR, the isotropy regularizer and LPIPS.
+
+Images are NCHW in [0, 1] unless a function says otherwise.
+
+LPIPS needs network weights, which this package never downloads: give a file with the state
+dict of an `lpips.LPIPS(net="alex" | "vgg")` module (backbone and linear heads together), as
+safetensors or a torch file of tensors, e.g. made once with
+`torch.save(lpips.LPIPS(net="alex").state_dict(), "lpips_alex.pth")`. Without a file the loss
+is switched off with a warning (see `load_lpips`).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of the training loss terms; the defaults are those of the MANUS paper."""
+
+    l1: float = 0.7
+    ssim: float = 0.1
+    lpips: float = 0.1
+    isotropy: float = 0.1
+
+
+def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return (pred - target).abs().mean()
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB for images in [0, 1] (over all elements)."""
+    mse = ((pred - target) ** 2).mean()
+    return -10 * torch.log10(mse.clamp_min(1e-20))
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32, device=None) -> torch.Tensor:
+    """The normalized 2D Gaussian window (size, size) of SSIM."""
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    g = g / g.sum()
+    return g[:, None] * g[None, :]
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5,
+         data_range: float = 1.0, reduce: bool = True) -> torch.Tensor:
+    """Structural similarity (Wang et al. 2004) of NCHW images with an 11x11 Gaussian window.
+
+    Local statistics are taken over the valid region only (no padding), as in the authors'
+    reference implementation, so borders are not biased by zeros; K1 = 0.01, K2 = 0.03.
+    With reduce=False the SSIM map (N, C, H-10, W-10) is returned.
+    """
+    if pred.shape != target.shape or pred.dim() != 4:
+        raise ValueError(f"ssim needs two NCHW images of one shape, got {tuple(pred.shape)}, {tuple(target.shape)}")
+    ch = pred.shape[1]
+    w = gaussian_window(window, sigma, pred.dtype, pred.device).expand(ch, 1, window, window)
+
+    def filt(x: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(x, w, groups=ch)
+
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    mu_x, mu_y = filt(pred), filt(target)
+    var_x = filt(pred * pred) - mu_x * mu_x
+    var_y = filt(target * target) - mu_y * mu_y
+    cov = filt(pred * target) - mu_x * mu_y
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x ** 2 + mu_y ** 2 + c1) * (var_x + var_y + c2))
+    return ssim_map.mean() if reduce else ssim_map
+
+
+def isotropy(scales: torch.Tensor, target: float = 0.4) -> torch.Tensor:
+    """Mean of (min_s / max_s - target)^2 over Gaussians with scales (N,3) (not log)."""
+    ratio = scales.amin(dim=-1) / scales.amax(dim=-1).clamp_min(1e-12)
+    return ((ratio - target) ** 2).mean()
+
+
+# --- LPIPS -----------------------------------------------------------------------------------
+
+# (kind, in, out, kernel, stride, padding) of the torchvision feature stacks, keyed by the
+# index they have in `features` (the index is part of the state dict keys). "relu" marks the
+# layers after which LPIPS taps a feature map.
+_ALEX = [(0, "conv", 3, 64, 11, 4, 2), (1, "relu"), (2, "pool"), (3, "conv", 64, 192, 5, 1, 2), (4, "relu"),
+         (5, "pool"), (6, "conv", 192, 384, 3, 1, 1), (7, "relu"), (8, "conv", 384, 256, 3, 1, 1), (9, "relu"),
+         (10, "conv", 256, 256, 3, 1, 1), (11, "relu")]
+_ALEX_TAPS = (2, 5, 8, 10, 12)  # slice ends
+_VGG_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
+_VGG_TAPS = (4, 9, 16, 23, 30)
+
+
+def _vgg_layers() -> list[tuple]:
+    layers, c_in, i = [], 3, 0
+    for v in _VGG_CFG:
+        if v == "M":
+            layers.append((i, "pool"))
+            i += 1
+        else:
+            layers += [(i, "conv", c_in, v, 3, 1, 1), (i + 1, "relu")]
+            c_in, i = v, i + 2
+    return layers
+
+
+class LPIPS(torch.nn.Module):
+    """Learned perceptual image patch similarity with an AlexNet or VGG16 backbone.
+
+    The module layout mirrors the `lpips` package so that its state dict loads unchanged:
+    net.slice{1..5}.{index}.weight/bias, lin{0..4}.model.1.weight, scaling_layer.shift/scale.
+    forward() takes NCHW images in [0, 1] and returns (N,) distances.
+    """
+
+    def __init__(self, net: str = "alex") -> None:
+        super().__init__()
+        if net not in ("alex", "vgg"):
+            raise ValueError(f"LPIPS backbone must be 'alex' or 'vgg', got {net!r}")
+        layers, taps = (_ALEX, _ALEX_TAPS) if net == "alex" else (_vgg_layers(), _VGG_TAPS)
+        self.net = torch.nn.Module()
+        start, widths = 0, []
+        for k, end in enumerate(taps, start=1):
+            block = torch.nn.Sequential()
+            for spec in layers:
+                if start <= spec[0] < end:
+                    block.add_module(str(spec[0]), _layer(spec, net))
+                    if spec[1] == "conv":
+                        width = spec[3]
+            setattr(self.net, f"slice{k}", block)
+            widths.append(width)
+            start = end
+        for k, width in enumerate(widths):
+            lin = torch.nn.Module()
+            lin.model = torch.nn.Sequential(torch.nn.Dropout(), torch.nn.Conv2d(width, 1, 1, bias=False))
+            setattr(self, f"lin{k}", lin)
+        self.scaling_layer = torch.nn.Module()
+        # Input normalization of the lpips package (ImageNet statistics in [-1, 1] units).
+        self.scaling_layer.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188])[None, :, None, None])
+        self.scaling_layer.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450])[None, :, None, None])
+        self.n_taps = len(taps)
+        self.eval()
+
+    def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        total = 0.0
+        fp, ft = self._features(pred), self._features(target)
+        for k in range(self.n_taps):
+            a = fp[k] / (fp[k].norm(dim=1, keepdim=True) + 1e-10)
+            b = ft[k] / (ft[k].norm(dim=1, keepdim=True) + 1e-10)
+            d = getattr(self, f"lin{k}").model((a - b) ** 2)
+            total = total + d.mean(dim=(1, 2, 3))
+        return total
+
+    def _features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        x = ((2 * x - 1) - self.scaling_layer.shift) / self.scaling_layer.scale
+        out = []
+        for k in range(1, self.n_taps + 1):
+            x = getattr(self.net, f"slice{k}")(x)
+            out.append(x)
+        return out
+
+
+def _layer(spec: tuple, net: str) -> torch.nn.Module:
+    if spec[1] == "conv":
+        _, _, c_in, c_out, k, s, p = spec
+        return torch.nn.Conv2d(c_in, c_out, k, s, p)
+    if spec[1] == "relu":
+        return torch.nn.ReLU(inplace=False)
+    return torch.nn.MaxPool2d(3, 2) if net == "alex" else torch.nn.MaxPool2d(2, 2)
+
+
+def load_lpips(weights: str | Path | None, net: str = "alex") -> LPIPS | None:
+    """An LPIPS module with weights from a user's file, or None (with a warning) without one.
+
+    The file holds tensors only: safetensors, or a torch file read with weights_only=True, so a
+    malicious file cannot run code. Missing or unexpected keys are an error naming the file.
+    """
+    if weights is None:
+        warnings.warn("LPIPS is off: no weights file given (pass lpips_weights=...; nothing is downloaded)",
+                      stacklevel=2)
+        return None
+    path = Path(weights)
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        state = load_file(str(path))
+    else:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    model = LPIPS(net)
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.startswith("scaling_layer.")]
+    if missing or unexpected:
+        raise LPIPSWeightsError(f"{path}: not an LPIPS-{net} state dict (missing {missing[:3]}, "
+                                f"unexpected {unexpected[:3]})")
+    return model.requires_grad_(False)
+
+
+class LPIPSWeightsError(ValueError):
+    exit_code = 2
+

@@ -1,0 +1,265 @@
+"""Calibration targets: the `board.toml` file of DESIGN.md and the tag layout `tags.json`.
+
+A board is described in one small TOML file:
+
+    type = "charuco"          # chessboard | charuco | apriltag-grid
+    cols = 4                  # chessboard: inner corners; charuco: squares; grid: tags
+    rows = 5
+    square = 0.054            # metres (grid: distance between neighbouring tag origins)
+    marker = 0.0405           # metres (charuco marker side, grid tag side)
+    dictionary = "DICT_4X4_1000"
+    inverted = true           # white-on-black print
+
+Every board point has an integer id: chessboard and ChArUco corners are numbered row by row
+(id = row * (inner columns) + col, as OpenCV numbers them); an AprilTag grid has four points per
+tag, id = tag_id * 4 + corner in OpenCV's corner order. The same numbering is used for the tags
+on the walls of a rig, so every later stage handles boards and tags alike.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+BOARD_TYPES = ("chessboard", "charuco", "apriltag-grid")
+_KEYS = {"type", "cols", "rows", "square", "marker", "dictionary", "inverted"}
+# tags.json names families the way the AprilTag library does; OpenCV names them as dictionaries.
+TAG_FAMILIES = {"tag36h11": "DICT_APRILTAG_36h11", "tag25h9": "DICT_APRILTAG_25h9",
+                "tag36h10": "DICT_APRILTAG_36h10", "tag16h5": "DICT_APRILTAG_16h5"}
+
+
+class CalibrationError(ValueError):
+    """Input the calibration cannot use; the message names the cameras (or the file and key)."""
+
+    exit_code = 2
+
+
+class BoardError(CalibrationError):
+    """A board or tag layout file that cannot be used; the message names the file and the key."""
+
+
+def dictionary_names() -> list[str]:
+    """The predefined marker dictionaries OpenCV knows (DICT_4X4_50 ... DICT_APRILTAG_36h11)."""
+    import cv2
+
+    return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
+
+
+def get_dictionary(name: str):
+    """The OpenCV dictionary called `name` (e.g. "DICT_4X4_1000")."""
+    import cv2
+
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+
+
+@dataclass(frozen=True)
+class Board:
+    """A planar calibration target; `object_points()[i]` is the board point with id i."""
+
+    type: str
+    cols: int
+    rows: int
+    square: float
+    marker: float = 0.0
+    dictionary: str = ""
+    inverted: bool = False
+    source: str = "board.toml"
+
+    @property
+    def corner_grid(self) -> tuple[int, int]:
+        """(columns, rows) of the chessboard corners found on this board (chessboard and charuco)."""
+        if self.type == "chessboard":
+            return self.cols, self.rows
+        return self.cols - 1, self.rows - 1
+
+    @property
+    def n_points(self) -> int:
+        if self.type == "apriltag-grid":
+            return 4 * self.cols * self.rows
+        cols, rows = self.corner_grid
+        return cols * rows
+
+    def object_points(self) -> np.ndarray:
+        """Board coordinates (n_points, 3) in metres, z = 0 on the board plane."""
+        if self.type == "apriltag-grid":
+            # Tag k sits at column k % cols, row k // cols; OpenCV corner order (clockwise from
+            # the tag's top-left as printed), y down the board like the chessboard rows.
+            k = np.arange(self.cols * self.rows)
+            origin = np.stack([k % self.cols, k // self.cols], axis=1) * self.square
+            offsets = np.array([[0, 0], [1, 0], [1, 1], [0, 1]]) * self.marker
+            xy = (origin[:, None, :] + offsets[None]).reshape(-1, 2)
+        else:
+            cols, rows = self.corner_grid
+            first = 0.0 if self.type == "chessboard" else self.square
+            xy = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), axis=-1).reshape(-1, 2) * self.square + first
+        return np.concatenate([xy, np.zeros((len(xy), 1))], axis=1)
+
+    def neighbour_pairs(self) -> np.ndarray:
+        """(P,2) ids of board points one square apart along a row or column (scale checks)."""
+        if self.type == "apriltag-grid":
+            tags = np.arange(self.cols * self.rows)[:, None] * 4
+            return np.concatenate([tags + [0, 1], tags + [1, 2], tags + [2, 3], tags + [3, 0]])
+        cols, rows = self.corner_grid
+        ids = np.arange(cols * rows).reshape(rows, cols)
+        return np.concatenate([np.stack([ids[:, :-1].ravel(), ids[:, 1:].ravel()], 1),
+                               np.stack([ids[:-1].ravel(), ids[1:].ravel()], 1)])
+
+    def neighbour_distance(self) -> float:
+        """The true distance between the points of `neighbour_pairs` (metres)."""
+        return self.marker if self.type == "apriltag-grid" else self.square
+
+    def opencv_board(self, cols: int | None = None, rows: int | None = None, dictionary: str | None = None):
+        """The cv2.aruco board object (CharucoBoard or GridBoard); None for a chessboard.
+
+        cols/rows/dictionary override the file's values, for the diagnosis of a board that
+        matches nothing.
+        """
+        import cv2
+
+        if self.type == "chessboard":
+            return None
+        size = (cols or self.cols, rows or self.rows)
+        dic = get_dictionary(dictionary or self.dictionary)
+        if self.type == "charuco":
+            return cv2.aruco.CharucoBoard(size, self.square, self.marker, dic)
+        return cv2.aruco.GridBoard(size, self.marker, self.square - self.marker, dic)
+
+
+def board_from_dict(doc: dict, source: str = "board.toml") -> Board:
+    """Validate a board table; every error names `source` and the key."""
+    unknown = sorted(set(doc) - _KEYS)
+    if unknown:
+        raise BoardError(f"{source}: unknown key '{unknown[0]}' (known: {', '.join(sorted(_KEYS))})")
+    if "type" not in doc:
+        raise BoardError(f"{source}: key 'type' is missing (one of {', '.join(BOARD_TYPES)})")
+    kind = doc["type"]
+    if kind not in BOARD_TYPES:
+        raise BoardError(f"{source}: key 'type' is {kind!r}, expected one of {', '.join(BOARD_TYPES)}")
+    values = {}
+    for key in ("cols", "rows"):
+        v = doc.get(key)
+        if v is None:
+            raise BoardError(f"{source}: key '{key}' is missing")
+        if not isinstance(v, int) or isinstance(v, bool) or v < 2:
+            raise BoardError(f"{source}: key '{key}' must be an integer >= 2, got {v!r}")
+        values[key] = v
+    if kind == "charuco" and min(values.values()) < 3:
+        raise BoardError(f"{source}: a charuco board needs at least 3 squares in 'cols' and 'rows'")
+    for key in ("square", "marker"):
+        v = doc.get(key, 0.0)
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
+            raise BoardError(f"{source}: key '{key}' must be a length in metres >= 0, got {v!r}")
+        values[key] = float(v)
+    if values["square"] <= 0:
+        raise BoardError(f"{source}: key 'square' must be > 0 metres")
+    if values["square"] > 1.0:
+        raise BoardError(f"{source}: key 'square' is {values['square']} m; lengths are in metres "
+                         f"(a 25 mm square is 0.025)")
+    if kind != "chessboard":
+        if not 0 < values["marker"] < values["square"] + (1e-9 if kind == "charuco" else 0):
+            raise BoardError(f"{source}: key 'marker' must be > 0 and smaller than 'square' "
+                             f"({values['square']} m), got {values['marker']}")
+    dictionary = doc.get("dictionary", "")
+    if not isinstance(dictionary, str):
+        raise BoardError(f"{source}: key 'dictionary' must be a string, got {dictionary!r}")
+    if kind == "apriltag-grid" and not dictionary:
+        dictionary = "DICT_APRILTAG_36h11"
+    if kind != "chessboard":
+        names = dictionary_names()
+        if dictionary not in names:
+            raise BoardError(f"{source}: key 'dictionary' is {dictionary!r}, not an OpenCV dictionary "
+                             f"(e.g. DICT_4X4_1000, DICT_APRILTAG_36h11)")
+        needed = (values["cols"] * values["rows"] + 1) // 2 if kind == "charuco" else values["cols"] * values["rows"]
+        size = len(get_dictionary(dictionary).bytesList)
+        if needed > size:
+            raise BoardError(f"{source}: the board needs {needed} markers but {dictionary} has {size}")
+    inverted = doc.get("inverted", False)
+    if not isinstance(inverted, bool):
+        raise BoardError(f"{source}: key 'inverted' must be true or false, got {inverted!r}")
+    return Board(kind, values["cols"], values["rows"], values["square"], values["marker"], dictionary,
+                 inverted, source)
+
+
+def _read(path: Path, parse, what: str) -> dict:
+    try:
+        doc = parse(path.read_text())
+    except FileNotFoundError:
+        raise BoardError(f"{path}: no such {what} file") from None
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise BoardError(f"{path}: not valid {'TOML' if parse is tomllib.loads else 'JSON'} ({exc})") from None
+    if not isinstance(doc, dict):
+        raise BoardError(f"{path}: expected a {what} table, got {type(doc).__name__}")
+    return doc
+
+
+def load_board(path: str | os.PathLike) -> Board:
+    """Read and validate a board.toml."""
+    return board_from_dict(_read(Path(path), tomllib.loads, "board"), str(path))
+
+
+@dataclass(frozen=True)
+class TagLayout:
+    """Known world positions of wall tags: `corners[i]` (4,3) belongs to tag `ids[i]`."""
+
+    family: str
+    size: float
+    ids: np.ndarray
+    corners: np.ndarray
+    source: str = "tags.json"
+
+    @property
+    def dictionary(self) -> str:
+        return TAG_FAMILIES[self.family]
+
+    def points(self) -> tuple[np.ndarray, np.ndarray]:
+        """(point ids (4T,), world points (4T,3)) with point id = tag_id * 4 + corner."""
+        pid = (self.ids[:, None] * 4 + np.arange(4)).ravel()
+        return pid, self.corners.reshape(-1, 3)
+
+    def edge_pairs(self) -> np.ndarray:
+        """(4T,2) point ids of neighbouring corners of each tag, `size` apart (scale checks)."""
+        edges = np.stack([np.arange(4), (np.arange(4) + 1) % 4], axis=1)
+        return (self.ids[:, None, None] * 4 + edges[None]).reshape(-1, 2)
+
+
+def load_tags(path: str | os.PathLike) -> TagLayout:
+    """Read and validate tags.json ({"family", "size", "tags": {"ID": [[x,y,z] x 4]}})."""
+    return tags_from_dict(_read(Path(path), json.loads, "tag layout"), str(path))
+
+
+def tags_from_dict(doc: dict, source: str = "tags.json") -> TagLayout:
+    """Validate a tag layout; errors name the file and the key."""
+    for key in ("family", "size", "tags"):
+        if key not in doc:
+            raise BoardError(f"{source}: key '{key}' is missing")
+    family = doc["family"]
+    if family not in TAG_FAMILIES:
+        raise BoardError(f"{source}: key 'family' is {family!r}, expected one of {', '.join(TAG_FAMILIES)}")
+    size = doc["size"]
+    if not isinstance(size, (int, float)) or not 0 < size < 2:
+        raise BoardError(f"{source}: key 'size' must be the tag side in metres, got {size!r}")
+    tags = doc["tags"]
+    if not isinstance(tags, dict) or not tags:
+        raise BoardError(f"{source}: key 'tags' must be a non-empty object of tag id -> 4 corners")
+    ids, corners = [], []
+    for key, value in tags.items():
+        try:
+            tag_id = int(key)
+            c = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise BoardError(f"{source}: key 'tags.{key}' is not an integer id with 4 [x, y, z] corners") from None
+        if c.shape != (4, 3) or not np.isfinite(c).all():
+            raise BoardError(f"{source}: key 'tags.{key}' must hold 4 corners [x, y, z], got shape {c.shape}")
+        sides = np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)
+        if np.abs(sides - size).max() > 0.05 * size:
+            raise BoardError(f"{source}: key 'tags.{key}' has sides {np.round(sides, 4).tolist()} m, "
+                             f"not the tag size {size} m (units are metres)")
+        ids.append(tag_id)
+        corners.append(c)
+    order = np.argsort(ids)
+    return TagLayout(family, float(size), np.asarray(ids)[order], np.asarray(corners)[order], source)

@@ -1,0 +1,287 @@
+"""calibrate_rig: every camera of a take (or of per-camera image lists) in one call.
+
+Methods:
+- "tags": tag PnP per camera and one bundle adjustment (extrinsics.calibrate_tag_rig);
+- "board": a board seen by several cameras at once (extrinsics.calibrate_board_rig);
+- "colmap": COLMAP structure from motion, moved into the tag world frame (colmap.py);
+- "both": COLMAP and tags; cameras too short of tags for PnP keep their COLMAP pose inside the
+  tag adjustment, and the report compares the two methods camera by camera;
+- "auto": tags when a tag layout is given, else board.
+Intrinsics are fixed from a file (--intrinsics), or calibrated per camera from a board seen in
+the same take.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..cameras import CameraRig
+from .boards import Board, BoardError, CalibrationError, TagLayout, load_board, load_tags
+from .detect import Detection, FrameSource, TagDetector, detect_cameras, diagnose_board, read_frames, subsample
+from .extrinsics import RigCalibration, calibrate_board_rig, calibrate_tag_rig, evaluate_tag_rig, require_all
+from .intrinsics import IntrinsicsError, calibrate_intrinsics
+from .report import build_report, cross_check, scale_check, write_report
+
+METHODS = ("auto", "tags", "board", "colmap", "both")
+EXPORTS = (("colmap", "colmap"), ("opencv-yaml", "cameras.yml"), ("easymocap", "easymocap"),
+           ("manus", "optim_params.txt"))
+
+
+Images = dict[str, Sequence[str | os.PathLike | np.ndarray] | str | os.PathLike]
+
+
+def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | None = None,
+                  tags: TagLayout | str | os.PathLike | None = None, board: Board | str | os.PathLike | None = None,
+                  method: str = "auto", intrinsics: CameraRig | str | os.PathLike | None = None,
+                  allow_partial: bool = False, tag_frames: int = 5, board_frames: int = 200,
+                  refine_tags: bool = False, workers: int | None = None, output: str | os.PathLike | None = None,
+                  force: bool = False, progress: Callable[[str, int, int], None] | None = None) -> RigCalibration:
+    """Calibrate every camera; write cameras.json, exports and the report when `output` is given.
+
+    images: {camera: image paths, in-memory images, or one video path}; or take: a take folder.
+    For a moving board, frame i of every camera must be the same instant (takes are grouped by
+    their host timestamps). tag_frames / board_frames: how many frames per camera are used.
+    Raises CalibrationError (and friends) naming the cameras when the input cannot be used;
+    with allow_partial the cameras that cannot be calibrated are left out and the result says so.
+    """
+    report_progress = progress or (lambda _stage, _done, _total: None)
+
+    def say(stage: str) -> None:
+        report_progress(stage, 0, 1)
+
+    def per_camera(stage: str, total: int) -> Callable[[str], None]:
+        done = []
+        report_progress(stage, 0, total)
+
+        def tick(_cam: str) -> None:
+            done.append(_cam)
+            report_progress(stage, len(done), total)
+        return tick
+
+    layout = load_tags(tags) if isinstance(tags, (str, os.PathLike)) else tags
+    target = load_board(board) if isinstance(board, (str, os.PathLike)) else board
+    if method not in METHODS:
+        raise CalibrationError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if method == "auto":
+        method = "tags" if layout is not None else "board"
+    if method in ("tags", "colmap", "both") and layout is None:
+        raise CalibrationError(f"method '{method}' needs a tag layout (--tags tags.json): it sets the world frame "
+                               f"and the metric scale")
+    if method == "board" and target is None:
+        raise CalibrationError("method 'board' needs a board (--board board.toml)")
+    if output is not None and not force and (Path(output) / "cameras.json").exists():
+        raise CalibrationError(f"{Path(output) / 'cameras.json'}: exists; pass --force to replace it")
+    sources, sync = _sources(images, take)
+    cams = list(sources)
+    fixed = _fixed_intrinsics(intrinsics, cams, allow_partial)
+    problems: dict[str, str] = {c: "not in the intrinsics file" for c in cams if fixed is not None and c not in fixed}
+    checks: dict = {}
+    inputs = {"cameras": len(cams), "method": method, "take": str(take) if take else None}
+
+    board_dets = sizes = None
+    if target is not None and (method == "board" or fixed is None):
+        board_src = {c: subsample(s, board_frames) for c, s in sources.items() if c not in problems}
+        board_dets, sizes = detect_cameras(board_src, target, workers, per_camera("board detection", len(board_src)))
+        board_dets = {c: {sync[c](f): d for f, d in dets.items()} for c, dets in board_dets.items()}
+        _no_board(board_dets, board_src, target, problems)
+    if method == "board":
+        require_all(cams, problems, allow_partial)
+        keep = {c: d for c, d in board_dets.items() if c not in problems}
+        given = {c: fixed[c] for c in keep} if fixed is not None else None
+        say("bundle adjustment of cameras, intrinsics and board poses")
+        result = calibrate_board_rig(keep, sizes, target, intrinsics=given, refine_intrinsics=given is None,
+                                     allow_partial=allow_partial)
+        result.missing.update(problems)
+        result.partial = bool(result.missing)
+        checks["scale"] = scale_check(result, target.neighbour_pairs(), target.neighbour_distance())
+    else:
+        intr = fixed if fixed is not None else _board_intrinsics(board_dets, sizes, target, problems)
+        if not intr:
+            raise CalibrationError("no camera has intrinsics: pass --intrinsics FILE or a --board seen in the take"
+                                   + (f" ({'; '.join(f'{c}: {m}' for c, m in problems.items())})" if problems else ""))
+        require_all(cams, problems, allow_partial)
+        tag_src = {c: subsample(sources[c], tag_frames) for c in cams if c in intr}
+        detectors = {c: TagDetector(layout.dictionary, K=intr[c][0], dist=intr[c][1]) for c in tag_src}
+        tag_dets, tag_sizes = detect_cameras(tag_src, detectors, workers, per_camera("tag detection", len(tag_src)))
+        _check_sizes(tag_sizes, intr)
+        initial, colmap_rig = {}, None
+        if method in ("colmap", "both"):
+            from .colmap import ColmapError
+
+            say("COLMAP: features, matching, mapping")
+            try:
+                colmap_rig, info = _colmap(tag_src, tag_dets, tag_sizes, intr, layout)
+            except ColmapError as exc:
+                if method == "colmap":
+                    raise
+                info = {"error": str(exc)}  # "both" goes on with the tags and reports why
+            inputs["colmap"] = info
+            if colmap_rig is not None:
+                initial = {c: _pose(colmap_rig, c) for c in colmap_rig.ids}
+        if method == "colmap":
+            result = evaluate_tag_rig(colmap_rig, tag_dets, layout, "colmap", extra=inputs["colmap"])
+            lost = {c: "not registered by COLMAP" for c in intr if c not in colmap_rig.ids}
+            problems.update(lost)
+            require_all(cams, problems, allow_partial)
+            result.missing, result.partial = problems, bool(problems)
+        else:
+            say("tag PnP and bundle adjustment")
+            result = calibrate_tag_rig(tag_dets, tag_sizes, layout, intr, refine_tags=refine_tags,
+                                       allow_partial=allow_partial, initial_poses=initial or None)
+            result.missing.update(problems)
+            result.partial = bool(result.missing)
+            if colmap_rig is not None:
+                checks["cross_check"] = cross_check(evaluate_tag_rig(colmap_rig, tag_dets, layout, "colmap"), result)
+                result.method = "both"
+        checks["scale"] = scale_check(result, layout.edge_pairs(), layout.size, static=True)
+    result.extra["checks"] = checks
+    report = build_report(result, inputs, checks)
+    if output is not None:
+        _write_outputs(result, report, Path(output), layout)
+    return result
+
+
+def _sources(images: Images | None, take) -> tuple[dict[str, FrameSource], dict[str, Callable[[int], int]]]:
+    """Per camera: where its frames are, and the map from its frame index to a sync index."""
+    if (images is None) == (take is None):
+        raise CalibrationError("give either per-camera images or a take folder")
+    if take is not None:
+        return _take_sources(Path(take))
+    sources = {}
+    for cam, value in images.items():
+        if isinstance(value, (str, os.PathLike)):
+            sources[str(cam)] = FrameSource((str(value),))
+        elif len(value) and all(isinstance(v, np.ndarray) for v in value):
+            sources[str(cam)] = FrameSource(arrays=tuple(value))
+        else:
+            sources[str(cam)] = FrameSource(tuple(str(v) for v in value))
+    if not sources:
+        raise CalibrationError("no cameras given")
+    return sources, {c: _identity for c in sources}
+
+
+def _identity(i: int) -> int:
+    return i
+
+
+def _take_sources(path: Path) -> tuple[dict[str, FrameSource], dict[str, Callable[[int], int]]]:
+    """A take's videos; frames of different cameras are grouped on the nominal tick of their host
+    timestamp (the sync stage does this properly; calibration needs only the grouping)."""
+    from ..take import Take
+
+    take = Take(path)
+    sources, sync = {}, {}
+    fps = take.fps
+    t0 = min(int(take.camera_frames(c)["t_host_ns"][0]) for c in take.cameras if take.frame_count(c))
+    for cam in take.cameras:
+        take.video_path(cam)  # a missing video is named now, not in a worker
+        sources[cam] = FrameSource((str(path),), camera=cam)
+        t = take.camera_frames(cam)["t_host_ns"]
+        if fps:
+            ticks = np.round((t - t0) * fps / 1e9).astype(np.int64)
+            sync[cam] = ticks.__getitem__
+        else:
+            sync[cam] = _identity
+    return sources, sync
+
+
+def _fixed_intrinsics(intrinsics, cams: list[str], allow_partial: bool) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+    if intrinsics is None:
+        return None
+    if not isinstance(intrinsics, CameraRig):
+        from .formats import load_cameras
+
+        intrinsics = load_cameras(intrinsics)
+    out = {c: (intrinsics.K[i], intrinsics.dist[i]) for i, c in enumerate(intrinsics.ids) if c in cams}
+    missing = [c for c in cams if c not in out]
+    if missing and not allow_partial:
+        raise CalibrationError(f"cameras {', '.join(missing)} are not in the intrinsics file "
+                               f"(it has {', '.join(intrinsics.ids[:8])}{'...' if len(intrinsics) > 8 else ''})")
+    return out
+
+
+def _no_board(dets: dict[str, dict[int, Detection]], sources: dict[str, FrameSource], board: Board,
+              problems: dict[str, str]) -> None:
+    """Cameras that never see the board: say which parameter of board.toml is likely wrong."""
+    empty = [c for c, d in dets.items() if not d]
+    if not empty:
+        return
+    sample = [g for _, g in read_frames(subsample(sources[empty[0]], 5))]
+    why = diagnose_board(sample, board)
+    if len(empty) == len(dets):
+        raise BoardError(f"no camera sees the board ({', '.join(empty)}): {why}")
+    for c in empty:
+        problems[c] = f"never sees the board ({why})"
+
+
+def _board_intrinsics(dets, sizes, board, problems) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    out = {}
+    if dets is None:
+        return out
+    for cam, d in dets.items():
+        if cam in problems:
+            continue
+        try:
+            res = calibrate_intrinsics(d, board, sizes[cam], camera=cam)
+        except IntrinsicsError as exc:
+            problems[cam] = exc.reason
+            continue
+        out[cam] = (res.K, res.dist)
+    return out
+
+
+def _check_sizes(sizes: dict[str, tuple[int, int]], intr) -> None:
+    """Intrinsics from a file must belong to images of the same size."""
+    bad = []
+    for cam, (w, h) in sizes.items():
+        K = intr[cam][0]
+        if not (0 < K[0, 2] < w and 0 < K[1, 2] < h):
+            bad.append(f"{cam} ({w}x{h}, principal point {K[0, 2]:.0f},{K[1, 2]:.0f})")
+    if bad:
+        raise CalibrationError(f"the intrinsics do not fit the images of cameras {', '.join(bad)}: "
+                               f"were they calibrated at another resolution?")
+
+
+def _colmap(sources, tag_dets, sizes, intr, layout):
+    """COLMAP on one frame per camera (the one with most tag corners), aligned to the tags."""
+    from .colmap import align_to_tags, colmap_poses
+
+    frames, images, dets = {}, {}, {}
+    for cam, src in sources.items():
+        found = tag_dets.get(cam, {})
+        frame = max(found, key=lambda f: len(found[f])) if found else (src.frames[0] if src.frames else 0)
+        frames[cam] = frame
+        dets[cam] = found.get(frame)
+        images[cam] = next(g for _, g in read_frames(FrameSource(src.paths, (frame,), src.arrays, src.camera)))
+    poses, stats = colmap_poses(images, intr)
+    rig, info = align_to_tags(poses, intr, sizes, {c: d for c, d in dets.items() if d is not None}, layout)
+    return rig, {**stats, **info}
+
+
+def _pose(rig: CameraRig, cam: str) -> np.ndarray:
+    i = rig.index(cam)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rig.R[i], rig.t[i]
+    return T
+
+
+def _write_outputs(result: RigCalibration, report: dict, folder: Path, layout: TagLayout | None) -> None:
+    from .formats import save_cameras
+
+    folder.mkdir(parents=True, exist_ok=True)
+    exported = {}
+    for fmt, name in EXPORTS:
+        try:
+            save_cameras(result.rig, folder / name, fmt, lossy=True)
+            exported[fmt] = name
+        except ValueError as exc:  # a camera id a format cannot hold: skip that export, say why
+            exported[fmt] = f"not written: {exc}"
+    report["exports"] = exported
+    points = layout.corners.reshape(-1, 3) if layout is not None else None
+    write_report(result, folder, report, points)
+    # cameras.json last: its presence means the calibration folder is complete
+    save_cameras(result.rig, folder / "cameras.json", "json")

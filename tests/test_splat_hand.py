@@ -15,15 +15,8 @@ from manus_capture.splat.hand import (HandConfig, HandGaussians, bone_neighbours
                                       point_segment_distance, random_poses, train_hand)
 from manus_capture.splat.trainer import LearningRates, Views
 
+
 BONE_IDX = torch.as_tensor(BONES, dtype=torch.long)
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ from manus_capture.splat.gaussians import rgb_to_sh0
 from manus_capture.splat.losses import LPIPS, LPIPSWeightsError, isotropy, load_lpips, psnr, ssim
 from manus_capture.splat.sh import eval_sh, num_sh_bases, sh_basis
 
+
 C1, C2 = 0.01 ** 2, 0.03 ** 2
 
 

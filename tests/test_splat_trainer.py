@@ -16,14 +16,6 @@ from manus_capture.splat.trainer import (LearningRates, ObjectConfig, Views, eva
                                         train_object)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def look_at(centre: torch.Tensor) -> torch.Tensor:
     """World-to-camera 4x4 of a camera at `centre` looking at the origin, z up."""
     z = -centre / centre.norm()
@@ -123,3 +115,50 @@ def test_checkpoint_rejects_other_files(tmp_path):
     save_file({"x": torch.zeros(1)}, str(tmp_path / "foreign.safetensors"), metadata={"format": "other"})
     with pytest.raises(CheckpointError, match="not a manus-capture splat checkpoint"):
         load_checkpoint(tmp_path / "foreign.safetensors")
+
+
+def test_reconstruct_command_trains_and_renders(tmp_path, known_scene):
+    import cv2
+    import numpy as np
+    from click.testing import CliRunner
+
+    from dataset_tools.cameras import CameraRig
+    from manus_capture.cli import cli
+
+    v = known_scene
+    ids = tuple(f"c{i:02d}" for i in range(len(v)))
+    rig = CameraRig(ids, v.Ks.numpy(), np.zeros((len(v), 5)), v.viewmats[:, :3, :3].numpy(),
+                    v.viewmats[:, :3, 3].numpy(), np.tile([v.width, v.height], (len(v), 1)))
+    rig.save(tmp_path / "cameras.json")
+    for name in ("images", "masks"):
+        (tmp_path / name).mkdir()
+    for i, cam in enumerate(ids):
+        bgr = (v.images[i].numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(tmp_path / "images" / f"{cam}.png"), bgr)
+        cv2.imwrite(str(tmp_path / "masks" / f"{cam}.png"), v.masks[i].numpy().astype(np.uint8) * 255)
+    args = ["reconstruct", "object", "--cameras", str(tmp_path / "cameras.json"), "--images",
+            str(tmp_path / "images"), "--masks", str(tmp_path / "masks"), "--test-cameras", "c00,c05,c10",
+            "--scale", "1", "--iterations", "150", "--points", "300", "--sh-degree", "0",
+            "-o", str(tmp_path / "object.safetensors")]
+    runner = CliRunner()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    psnr_db = float(result.output.split("held-out PSNR ")[1].split(" dB")[0])
+    assert psnr_db >= 28.0
+
+    # An existing output is not overwritten without --force: one line, exit code 2.
+    again = runner.invoke(cli, args)
+    assert again.exit_code == 2 and "exists" in again.output and "Traceback" not in again.output
+    (tmp_path / "masks" / "c03.png").unlink()
+    missing = runner.invoke(cli, args + ["--force"])
+    assert missing.exit_code == 2 and "c03" in missing.output
+
+    out = runner.invoke(cli, ["reconstruct", "render", str(tmp_path / "object.safetensors"), "--cameras",
+                              str(tmp_path / "cameras.json"), "-o", str(tmp_path / "renders")])
+    assert out.exit_code == 0, out.output
+    rendered = cv2.imread(str(tmp_path / "renders" / "c05.png"))[..., ::-1] / 255.0
+    target = v.images[5].numpy()
+    assert rendered.shape == target.shape
+    assert -10 * np.log10(np.mean((rendered - target) ** 2)) >= 28.0

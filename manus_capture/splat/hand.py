@@ -35,7 +35,7 @@ from .losses import LossWeights, load_lpips, psnr, ssim
 from .rasterize import rasterize
 from .sh import eval_sh
 from .strategy import DensifyStrategy
-from .trainer import LearningRates, Views, decay_means_lr, image_loss, make_optimizer
+from .trainer import LearningRates, Views, decay_means_lr, image_loss, make_optimizer, optimize_step
 
 N_BONES = 20
 
@@ -216,7 +216,7 @@ class HandConfig:
     densify: DensifyStrategy | None = field(default_factory=DensifyStrategy)
     lpips_weights: str | None = None
     lpips_net: str = "alex"
-    chunk_elements: int = 1 << 21
+    chunk_elements: int | None = None
     seed: int = 0
 
 
@@ -251,14 +251,7 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
         rgb, _, meta = model.render(poses[p], view.viewmats[v:v + 1], view.Ks[v:v + 1], view.width, view.height,
                                     bg, sh_degree=degree, return_meta=True, chunk_elements=cfg.chunk_elements)
         loss, parts = image_loss(rgb, targets[p][v:v + 1], model.gaussians.scales, cfg.weights, lpips)
-        if strategy is not None:
-            strategy.before_backward(meta)
-        loss.backward()
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        record = {"step": step, "loss": float(loss), "n": len(model), **parts}
-        if strategy is not None:
-            record.update(strategy.after_backward(model.gaussians, optimizer, meta, step))
+        record = optimize_step(model.gaussians, optimizer, strategy, loss, parts, meta, step)
         history.append(record)
         if step % 10 == 0 or step == cfg.iterations:
             bar.set_postfix(loss=f"{record['loss']:.4f}", n=len(model))

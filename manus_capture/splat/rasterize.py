@@ -17,8 +17,8 @@ batch of C pinhole cameras (world-to-camera 4x4 matrices and 3x3 intrinsics) giv
 
 Tiles are processed in chunks of similar list length; each chunk is padded to its longest list
 and evaluated with dense tensor operations; its backward pass is written out (recomputing the
-per-pixel terms from the chunk's inputs), so memory holds one chunk's per-pixel tensors at a time. Everything runs on the device of
-the inputs (CPU or CUDA) and is differentiable through autograd.
+per-pixel terms from the chunk's inputs), so memory holds one chunk's per-pixel tensors at a time.
+Everything runs on the device of the inputs (CPU or CUDA) and is differentiable through autograd.
 
 Pixel centres sit at integer coordinates (OpenCV): pixel (i, j) is at x = i, y = j.
 Unlike the CUDA rasterizers, whose splats also reach into pixels between 3 and about 3.3 sigma
@@ -28,6 +28,7 @@ itself, so the image does not depend on the tile size and a dense renderer repro
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -157,40 +158,42 @@ def quadratic_coefficients(m: torch.Tensor, con: torch.Tensor) -> torch.Tensor:
                         0.5 * a * mx * mx + 0.5 * c * my * my + b * mx * my], dim=-1)
 
 
-def _step(x: torch.Tensor) -> torch.Tensor:
-    """1.0 where x > 0, else 0.0, in x's dtype.
+def _mask(op, a: torch.Tensor, b) -> torch.Tensor:
+    """op(a, b) as 0.0/1.0 in a's dtype.
 
-    Float masks multiply into the chunk tensors; on the CPU this is several times faster than
-    boolean masks with torch.where, which dominate the compositing time otherwise.
+    Float masks multiply into the chunk tensors; on the CPU, comparisons written straight into a
+    float tensor and in-place products are several times faster than boolean masks with
+    torch.where (which otherwise dominate the compositing time). Binary operations keep the
+    full-size tensor first: broadcasting the first operand takes a slow path in TensorIterator.
     """
-    return torch.sign(x).clamp_min(0)
+    return op(a, b, out=torch.empty_like(a))
 
 
 def _splat_terms(coeffs: torch.Tensor, op: torch.Tensor, basis: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Per (tile, pixel, entry) quantities of a padded chunk, shared by forward and backward.
 
-    coeffs (T,L,6), op (T,L) (zero on padding), basis (P,6). Returns q/2, the Gaussian factor
-    g = exp(-q/2), alpha as drawn (zero where skipped or after the pixel stopped), the masks of
-    kept and drawn entries (floats), the transmittance before each entry and the final
-    transmittance (T,P).
+    coeffs (T,L,6), op (T,L) (zero on padding), basis (P,6). Returns the Gaussian factor
+    g = exp(-q/2), alpha as drawn (zero where skipped or after the pixel stopped), 1 - alpha,
+    the mask of drawn entries, the transmittance before each entry and the final transmittance
+    (T,P).
     """
-    sigma = torch.matmul(basis, coeffs.transpose(1, 2))  # (T,P,L)
-    g = torch.exp(-sigma)
-    alpha = torch.clamp_max(op[:, None, :] * g, ALPHA_MAX)
-    # Inside the 3-sigma ellipse and alpha >= 1/255 together: q/2 <= min(4.5, ln(255 o)), one
-    # comparison per element; padding has o = 0 and so a bound of -inf.
-    bound = torch.clamp_max(torch.log(op * (1 / ALPHA_MIN)), SIGMA_CUTOFF)
-    keep = _step(bound[:, None, :] - sigma)
-    alpha = alpha * keep
+    g = torch.matmul(basis, coeffs.transpose(1, 2)).neg_().exp_()  # (T,P,L)
+    # Inside the 3-sigma ellipse (g >= e^-4.5) and alpha = o g >= 1/255, in one comparison;
+    # padding has o = 0 and so an infinite bound.
+    bound = torch.maximum(torch.full_like(op, math.exp(-SIGMA_CUTOFF)), ALPHA_MIN / op)
+    drawn = _mask(torch.ge, g, bound[:, None, :])
+    alpha = (g * op[:, None, :]).clamp_max_(ALPHA_MAX).mul_(drawn)
     # Transmittance only falls along a list, so "stop before the entry that would reach 1e-4"
     # keeps exactly the entries whose inclusive product stays above it: a prefix of the list.
-    reach = torch.cumprod(1 - alpha, dim=-1)
-    drawn = _step(reach - TRANSMITTANCE_MIN)
-    alpha = alpha * drawn
+    one_minus = 1 - alpha  # past the prefix not 1 - alpha as drawn, but only read where drawn
+    reach = torch.cumprod(one_minus, dim=-1)
+    prefix = _mask(torch.gt, reach, TRANSMITTANCE_MIN)
+    drawn.mul_(prefix)
+    alpha.mul_(prefix)
     before = torch.cat([torch.ones_like(reach[..., :1]), reach[..., :-1]], dim=-1)
-    n_drawn = drawn.sum(-1, keepdim=True).long()
-    final = torch.where(n_drawn > 0, reach.gather(-1, (n_drawn - 1).clamp_min(0)), 1.0).squeeze(-1)
-    return sigma, g, alpha, keep * drawn, before, final
+    n_prefix = prefix.sum(-1, keepdim=True).long()
+    final = torch.where(n_prefix > 0, reach.gather(-1, (n_prefix - 1).clamp_min(0)), 1.0).squeeze(-1)
+    return g, alpha, one_minus, drawn, before, final
 
 
 class _Composite(torch.autograd.Function):
@@ -205,25 +208,29 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, coeffs, op, col, basis):
-        _, _, alpha, _, before, final = _splat_terms(coeffs, op, basis)
+        _, alpha, _, _, before, final = _splat_terms(coeffs, op, basis)
         ctx.save_for_backward(coeffs, op, col, basis)
-        return torch.bmm(alpha * before, col), 1 - final
+        # (col^T w^T)^T rather than w col: MKL's batched GEMM is far faster with the small
+        # colour dimension on the outside (here and in the backward products below).
+        return torch.bmm(col.transpose(1, 2), alpha.mul_(before).transpose(1, 2)).transpose(1, 2), 1 - final
 
     @staticmethod
     def backward(ctx, d_color, d_alpha):
         coeffs, op, col, basis = ctx.saved_tensors
-        _, g, alpha, used, before, final = _splat_terms(coeffs, op, basis)
+        g, alpha, one_minus, drawn, before, final = _splat_terms(coeffs, op, basis)
         weights = alpha * before
-        d_col = torch.bmm(weights.transpose(1, 2), d_color)  # (T,L,D)
+        d_col = torch.bmm(d_color.transpose(1, 2), weights).transpose(1, 2)  # (T,L,D)
         proj = torch.bmm(d_color, col.transpose(1, 2))  # c_i . dC, (T,P,L)
-        wc = weights * proj
-        later = wc.sum(-1, keepdim=True) - torch.cumsum(wc, dim=-1)  # sum over k > i
-        d_a = before * proj - (later - d_alpha[..., None] * final[..., None]) / (1 - alpha)
+        wc = weights.mul_(proj)
+        # sum over k > i of w_k c_k . dC, minus the alpha output's share dA * T_final
+        later = torch.cumsum(wc, dim=-1).neg_().add_(wc.sum(-1, keepdim=True))
+        later.sub_((d_alpha * final)[..., None]).div_(one_minus)
+        d_a = before.mul_(proj).sub_(later)
         # alpha = min(o g, 0.999): no gradient where it is clamped
-        live = used * _step(ALPHA_MAX - op[:, None, :] * g)
-        dg = d_a * live * g
+        live = drawn.mul_(_mask(torch.lt, g, ALPHA_MAX / op[:, None, :]))
+        dg = d_a.mul_(live).mul_(g)
         d_op = dg.sum(1)
-        d_coeffs = -torch.matmul((dg * op[:, None, :]).transpose(1, 2), basis)  # (T,L,6)
+        d_coeffs = -torch.matmul(basis.T, dg.mul_(op[:, None, :])).transpose(1, 2)  # (T,L,6)
         return d_coeffs, d_op, d_col, None
 
 
@@ -286,13 +293,15 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
         colors_out.append(color[inside])
         alphas_out.append(alpha[inside])
         pixel_ids.append(flat[inside])
+    # Empty slices of every input keep the outputs in the autograd graph when nothing is visible.
+    anchor = opacities[:0] + means2d[:0].sum(-1) + conics[:0].sum(-1)
+    colors_out.append(colors[:0] + anchor[:, None])
+    alphas_out.append(anchor)
+    pixel_ids.append(torch.zeros(0, dtype=torch.long, device=device))
     total = n_cameras * width * height
-    out_color = torch.zeros(total, D, dtype=colors.dtype, device=device)
-    out_alpha = torch.zeros(total, dtype=colors.dtype, device=device)
-    if pixel_ids:
-        ids = torch.cat(pixel_ids)
-        out_color = out_color.index_copy(0, ids, torch.cat(colors_out))
-        out_alpha = out_alpha.index_copy(0, ids, torch.cat(alphas_out))
+    ids = torch.cat(pixel_ids)
+    out_color = torch.zeros(total, D, dtype=colors.dtype, device=device).index_copy(0, ids, torch.cat(colors_out))
+    out_alpha = torch.zeros(total, dtype=colors.dtype, device=device).index_copy(0, ids, torch.cat(alphas_out))
     return out_color, out_alpha
 
 
@@ -318,8 +327,8 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
               opacities: torch.Tensor, colors: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
               width: int, height: int, background: torch.Tensor | None = None,
               covars: torch.Tensor | None = None, sh_degree: int | None = None,
-              near_plane: float = 0.01, far_plane: float = 1e10, eps2d: float = 0.3, tile_size: int = 16,
-              backend: str = "auto", chunk_elements: int = 1 << 21, return_meta: bool = False):
+              near_plane: float = 0.01, far_plane: float = 1e10, eps2d: float = 0.3, tile_size: int = 8,
+              backend: str = "auto", chunk_elements: int | None = None, return_meta: bool = False):
     """Render N Gaussians into C cameras: (rgb (C,H,W,D), alpha (C,H,W,1)) [, meta].
 
     means (N,3); quats (N,4) w x y z, any norm; scales (N,3) (not log); opacities (N,) or (C,N) in
@@ -330,7 +339,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
 
     backend: "torch" (this module), "gsplat" (CUDA only) or "auto" (gsplat when it is installed
     and the inputs are on a CUDA device). chunk_elements bounds tiles x pixels x list length per
-    compositing chunk, hence peak memory. With return_meta, meta holds means2d (C,N,2; call
+    compositing chunk, hence peak memory (default 2^18 on the CPU, where chunks that fit the
+    caches are fastest, 2^25 on CUDA). The default tile of 8x8 pixels (gsplat: 16x16) wastes
+    less work on small splats; the image does not depend on it. With return_meta, meta holds means2d (C,N,2; call
     retain_grad() on it for densification statistics), radii (C,N), depths, conics, visible and
     n_isects.
     """
@@ -344,7 +355,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
             raise RuntimeError("the gsplat backend needs the gsplat package and inputs on a CUDA device; "
                                "use backend='torch' (or 'auto')")
         return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-                                 background, covars, sh_degree, near_plane, far_plane, eps2d, tile_size, return_meta)
+                                 background, covars, sh_degree, near_plane, far_plane, eps2d, return_meta)
     if backend != "torch":
         raise ValueError(f"unknown backend {backend!r} (torch, gsplat or auto)")
 
@@ -360,6 +371,8 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
     opac = _per_camera(opacities, C, N, "opacities", 0)
     D = cols.shape[-1]
 
+    if chunk_elements is None:
+        chunk_elements = 1 << 25 if means.is_cuda else 1 << 18
     bins = bin_gaussians(proj["means2d"].detach(), proj["extents"], proj["depths"].detach(), proj["valid"],
                          width, height, tile_size)
     color, alpha = rasterize_tiles(proj["means2d"].reshape(C * N, 2), proj["conics"].reshape(C * N, 3),
@@ -382,8 +395,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
 
 
 def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, width, height, background,
-                      covars, sh_degree, near_plane, far_plane, eps2d, tile_size, return_meta):
-    """The same call on gsplat's CUDA kernels (pixel centres shifted to gsplat's half-integers)."""
+                      covars, sh_degree, near_plane, far_plane, eps2d, return_meta):
+    """The same call on gsplat's CUDA kernels (pixel centres shifted to gsplat's half-integers;
+    gsplat's own 16x16 tiles, the size its kernels are tuned for)."""
     import gsplat
 
     C = viewmats.shape[0]
@@ -396,7 +410,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, wid
         backgrounds = background.expand(C, background.shape[-1]) if background.dim() == 1 else background
     rgb, alpha, meta = gsplat.rasterization(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
-        far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, tile_size=tile_size, backgrounds=backgrounds,
+        far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, tile_size=16, backgrounds=backgrounds,
         covars=covars, packed=False)
     if not return_meta:
         return rgb, alpha

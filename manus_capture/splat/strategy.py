@@ -165,19 +165,26 @@ class DensifyStrategy:
         return int(outside.sum())
 
 
-def outside_mask_votes(points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
-                       masks: torch.Tensor) -> torch.Tensor:
-    """For points (N,3): in how many of the V masks (V,H,W) each lands inside the image on background."""
-    V, H, W = masks.shape
-    pc = torch.einsum("vij,nj->vni", viewmats[:, :3, :3].to(points.dtype), points) + viewmats[:, None, :3, 3].to(points.dtype)
-    uvw = torch.einsum("vij,vnj->vni", Ks.to(points.dtype), pc)
+def nearest_pixels(points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, height: int,
+                   width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where points (N,3) land in V views: flat indices (V,N) into (V,H,W) images of the pixel
+    nearest to each projection, and (V,N) whether it is in front of the camera and in the image."""
+    R, t = viewmats[:, :3, :3].to(points.dtype), viewmats[:, :3, 3].to(points.dtype)
+    uvw = torch.einsum("vij,vnj->vni", Ks.to(points.dtype), torch.einsum("vij,nj->vni", R, points) + t[:, None])
     z = uvw[..., 2]
     front = z > 1e-9
     uv = torch.round(uvw[..., :2] / torch.where(front, z, torch.ones_like(z))[..., None]).long()
-    inside = front & (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H)
-    flat = torch.arange(V, device=points.device)[:, None] * (H * W) + uv[..., 1].clamp(0, H - 1) * W + uv[..., 0].clamp(0, W - 1)
-    on_object = masks.reshape(-1)[flat]
-    return (inside & ~on_object).sum(0)
+    inside = front & (uv[..., 0] >= 0) & (uv[..., 0] < width) & (uv[..., 1] >= 0) & (uv[..., 1] < height)
+    row, col = uv[..., 1].clamp(0, height - 1), uv[..., 0].clamp(0, width - 1)
+    view = torch.arange(len(viewmats), device=points.device)[:, None]
+    return (view * height + row) * width + col, inside
+
+
+def outside_mask_votes(points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
+                       masks: torch.Tensor) -> torch.Tensor:
+    """For points (N,3): in how many of the V masks (V,H,W) each lands inside the image on background."""
+    flat, inside = nearest_pixels(points, viewmats, Ks, masks.shape[1], masks.shape[2])
+    return (inside & ~masks.reshape(-1)[flat]).sum(0)
 
 
 def _edit(gaussians: Gaussians, optimizer: torch.optim.Optimizer | None,

@@ -20,7 +20,7 @@ import torch
 from .gaussians import PARAM_NAMES, Gaussians
 from .losses import LPIPS, LossWeights, isotropy, l1, load_lpips, psnr, ssim
 from .rasterize import rasterize
-from .strategy import DensifyStrategy, outside_mask_votes
+from .strategy import DensifyStrategy, nearest_pixels, outside_mask_votes
 
 
 @dataclass
@@ -46,6 +46,10 @@ class Views:
 
     def __len__(self) -> int:
         return self.images.shape[0]
+
+    def to(self, device: str | torch.device) -> "Views":
+        return Views(self.images.to(device), self.Ks.to(device), self.viewmats.to(device),
+                     None if self.masks is None else self.masks.to(device))
 
     @property
     def width(self) -> int:
@@ -102,7 +106,7 @@ class ObjectConfig:
     mask_prune_views: int = 1
     lpips_weights: str | None = None
     lpips_net: str = "alex"
-    chunk_elements: int = 1 << 21
+    chunk_elements: int | None = None
     seed: int = 0
 
 
@@ -120,13 +124,13 @@ def scene_frame(views: Views) -> tuple[torch.Tensor, float, float]:
     smallest half-width of any camera's field of view at that point; the camera extent is 1.1
     times the largest distance of a camera centre from the centres' mean (3DGS's scene scale).
     """
-    c = views.centres.double()
-    d = views.viewmats[:, 2, :3].double()  # optical axes: third row of R
+    c = views.centres.double().cpu()
+    d = views.viewmats[:, 2, :3].double().cpu()  # optical axes: third row of R
     d = d / d.norm(dim=-1, keepdim=True)
     P = torch.eye(3, dtype=torch.float64) - d[:, :, None] * d[:, None, :]
     centre = torch.linalg.lstsq(P.sum(0), torch.einsum("vij,vj->i", P, c)).solution
     dist = (c - centre).norm(dim=-1)
-    fov = torch.minimum(views.width / 2 / views.Ks[:, 0, 0], views.height / 2 / views.Ks[:, 1, 1]).double()
+    fov = torch.minimum(views.width / 2 / views.Ks[:, 0, 0], views.height / 2 / views.Ks[:, 1, 1]).double().cpu()
     half = float((dist * fov).min())
     extent = 1.1 * float((c - c.mean(0)).norm(dim=-1).max())
     return centre.float(), half, max(extent, 1e-6)
@@ -142,7 +146,7 @@ def init_points(views: Views, n: int, generator: torch.Generator) -> tuple[torch
     kept = []
     count = 0
     for _ in range(50):
-        cand = centre + (torch.rand(4 * n, 3, generator=generator) * 2 - 1) * half
+        cand = (centre + (torch.rand(4 * n, 3, generator=generator) * 2 - 1) * half).to(views.images.device)
         if views.masks is not None:
             cand = cand[outside_mask_votes(cand, views.viewmats, views.Ks, views.masks) == 0]
         kept.append(cand)
@@ -157,13 +161,7 @@ def init_points(views: Views, n: int, generator: torch.Generator) -> tuple[torch
 
 def mean_colour(points: torch.Tensor, views: Views) -> torch.Tensor:
     """Average image colour (N,3) at the projections of points (N,3) over the views that see them."""
-    V, H, W = views.images.shape[:3]
-    pc = torch.einsum("vij,nj->vni", views.viewmats[:, :3, :3], points) + views.viewmats[:, None, :3, 3]
-    uvw = torch.einsum("vij,vnj->vni", views.Ks, pc)
-    z = uvw[..., 2]
-    uv = torch.round(uvw[..., :2] / z.clamp_min(1e-9)[..., None]).long()
-    seen = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < W) & (uv[..., 1] >= 0) & (uv[..., 1] < H)
-    flat = torch.arange(V)[:, None] * H * W + uv[..., 1].clamp(0, H - 1) * W + uv[..., 0].clamp(0, W - 1)
+    flat, seen = nearest_pixels(points, views.viewmats, views.Ks, views.height, views.width)
     rgb = views.images.reshape(-1, 3)[flat] * seen[..., None]
     return (rgb.sum(0) / seen.sum(0).clamp_min(1)[:, None]).clamp(0, 1)
 
@@ -194,7 +192,21 @@ def image_loss(pred: torch.Tensor, target: torch.Tensor, scales: torch.Tensor, w
     if lpips is not None:
         parts["lpips"] = lpips(p, t).mean()
     loss = sum(getattr(weights, k) * v for k, v in parts.items())
-    return loss, {k: float(v) for k, v in parts.items()}
+    return loss, {k: float(v.detach()) for k, v in parts.items()}
+
+
+def optimize_step(gaussians: Gaussians, optimizer: torch.optim.Optimizer, strategy: DensifyStrategy | None,
+                  loss: torch.Tensor, parts: dict[str, float], meta: dict, step: int) -> dict[str, float]:
+    """Backward, Adam step and densification of one training step; returns the step's record."""
+    if strategy is not None:
+        strategy.before_backward(meta)
+    loss.backward()
+    optimizer.step()
+    optimizer.zero_grad(set_to_none=True)
+    record = {"step": step, "loss": float(loss.detach()), "n": len(gaussians), **parts}
+    if strategy is not None:
+        record.update(strategy.after_backward(gaussians, optimizer, meta, step))
+    return record
 
 
 def render(gaussians: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
@@ -209,7 +221,7 @@ def render(gaussians: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, width
 def evaluate(gaussians: Gaussians, views: Views, background=(0.0, 0.0, 0.0),
              lpips: LPIPS | None = None) -> dict[str, float]:
     """Mean PSNR (dB), SSIM and, with an LPIPS module, LPIPS of the model over held-out views."""
-    bg = torch.as_tensor(background, dtype=views.images.dtype)
+    bg = torch.as_tensor(background, dtype=views.images.dtype, device=views.images.device)
     targets = views.targets(bg)
     scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "lpips": []}
     for i in range(len(views)):
@@ -230,7 +242,7 @@ def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussia
     cfg = config or ObjectConfig()
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
-    bg = torch.tensor(cfg.background, dtype=views.images.dtype)
+    bg = torch.tensor(cfg.background, dtype=views.images.dtype, device=views.images.device)
     targets = views.targets(bg)
     _, _, scene_scale = scene_frame(views)
     if init is None:
@@ -239,6 +251,8 @@ def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussia
     else:
         gaussians = init
     lpips = load_lpips(cfg.lpips_weights, cfg.lpips_net) if cfg.weights.lpips > 0 else None
+    if lpips is not None:
+        lpips = lpips.to(views.images.device)
     optimizer = make_optimizer(gaussians, cfg.lr, scene_scale)
     strategy = None if cfg.densify is None else replace(cfg.densify, scene_scale=scene_scale)
 
@@ -254,14 +268,8 @@ def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussia
         rgb, _, meta = render(gaussians, views.viewmats[i:i + 1], views.Ks[i:i + 1], views.width, views.height,
                               bg, sh_degree=degree, return_meta=True, chunk_elements=cfg.chunk_elements)
         loss, parts = image_loss(rgb, targets[i:i + 1], gaussians.scales, cfg.weights, lpips)
+        record = optimize_step(gaussians, optimizer, strategy, loss, parts, meta, step)
         if strategy is not None:
-            strategy.before_backward(meta)
-        loss.backward()
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        record = {"step": step, "loss": float(loss), "n": len(gaussians), **parts}
-        if strategy is not None:
-            record.update(strategy.after_backward(gaussians, optimizer, meta, step))
             due = strategy.refine_start < step < strategy.refine_stop and step % strategy.refine_every == 0
             if due and views.masks is not None:
                 record["mask_pruned"] = strategy.prune_outside_masks(

@@ -122,8 +122,8 @@ def _segment_closest(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def _ray_end_spheres(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Nearer positive root (n, M) of |o - c + t d| = r for every ray and centre c (M,3)."""
     dd = np.einsum("nk,nk->n", d, d)[:, None]
-    dot_d = np.einsum("nk,nk->n", o, d)[:, None] - np.einsum("nk,mk->nm", d, c)
-    norm2 = (np.einsum("nk,nk->n", o, o)[:, None] - 2 * np.einsum("nk,mk->nm", o, c)
+    dot_d = np.einsum("nk,nk->n", o, d)[:, None] - (d @ c.T)
+    norm2 = (np.einsum("nk,nk->n", o, o)[:, None] - 2 * (o @ c.T)
              + np.einsum("mk,mk->m", c, c))
     disc = dot_d * dot_d - dd * (norm2 - r * r)
     t = (-dot_d - np.sqrt(np.maximum(disc, 0.0))) / dd
@@ -137,10 +137,10 @@ def _ray_capsules_block(o: np.ndarray, d: np.ndarray, a: np.ndarray, b: np.ndarr
     ba = b - a                                                  # (M,3)
     baba = np.einsum("mk,mk->m", ba, ba)
     dd = np.einsum("nk,nk->n", d, d)[:, None]
-    bard = np.einsum("nk,mk->nm", d, ba)
-    baoa = np.einsum("nk,mk->nm", o, ba) - np.einsum("mk,mk->m", a, ba)
-    rdoa = np.einsum("nk,nk->n", o, d)[:, None] - np.einsum("nk,mk->nm", d, a)
-    oaoa = (np.einsum("nk,nk->n", o, o)[:, None] - 2 * np.einsum("nk,mk->nm", o, a)
+    bard = (d @ ba.T)
+    baoa = (o @ ba.T) - np.einsum("mk,mk->m", a, ba)
+    rdoa = np.einsum("nk,nk->n", o, d)[:, None] - (d @ a.T)
+    oaoa = (np.einsum("nk,nk->n", o, o)[:, None] - 2 * (o @ a.T)
             + np.einsum("mk,mk->m", a, a))
     qa = baba * dd - bard * bard
     qb = baba * rdoa - baoa * bard

@@ -86,6 +86,7 @@ class SimulatedCube:
                             for i, c in enumerate(self.camera_configs))
         self.records: list[list[tuple[int, int, bool]]] = [[] for _ in self.camera_configs]
         self._lock = threading.Lock()
+        self._state = None
 
     @property
     def period_ns(self) -> float:
@@ -99,7 +100,11 @@ class SimulatedCube:
 
     def render(self, cam: int, t_ns: float, labels: bool = False) -> Rendered:
         """Camera `cam`'s view of the scene at host time t_ns (its mid-exposure)."""
-        state = self.motion.state(float(self.seconds(t_ns)))
+        seconds = float(self.seconds(t_ns))
+        if self._state is None or self._state[0] != seconds:
+            # cameras exposed at the same moment (triggered rigs, label renders) share the scene
+            self._state = (seconds, self.motion.state(seconds))
+        state = self._state[1]
         return self.renderer.render(cam, hand=self.hand, hand_angles=state.hand_angles, paint=state.paint,
                                     obj=self.object, object_pose=state.object_pose,
                                     light=self.lighting(int(t_ns)), labels=labels)

@@ -222,17 +222,22 @@ class Renderer:
         depth = bg_depth[py, px].astype(np.float64)
         colour = bg_colour[py, px].copy()
         label = np.full(n, LABEL_WALLS, np.uint8)
-        gx, gy = gx.ravel(), gy.ravel()
         if hand is not None and hand_angles is not None:
             a, b, r, surface, tree = self._hand_geometry(hand, hand_angles)
-            # only rays inside some capsule's projected bounding circle can meet the hand
-            near = np.zeros(n, bool)
-            for m in range(len(r)):
-                near |= self._near(cam, (a[m] + b[m]) / 2, np.linalg.norm(b[m] - a[m]) / 2 + r[m], gx, gy)
-            sel = np.flatnonzero(near)
             t_h = np.full(n, np.inf)
             n_h = np.zeros((n, 3))
-            t_h[sel], _, n_h[sel] = shapes.ray_capsules(np.broadcast_to(origin, (len(sel), 3)), dirs[sel], a, b, r)
+            # Only rays inside a capsule's projected bounding square can meet it. Each finger (and
+            # the palm) is cast on its own rays: far fewer ray-capsule pairs than all against all.
+            near = self._near(cam, (a + b) / 2, np.linalg.norm(b - a, axis=1) / 2 + r, box)  # (M,N)
+            for group in np.unique(hand.capsule_finger):
+                caps = np.flatnonzero(hand.capsule_finger == group)
+                sel = np.flatnonzero(near[caps].any(axis=0))
+                if len(sel) == 0:
+                    continue
+                t_g, _, n_g = shapes.ray_capsules(np.broadcast_to(origin, (len(sel), 3)), dirs[sel],
+                                                  a[caps], b[caps], r[caps])
+                closer = t_g < t_h[sel]
+                t_h[sel[closer]], n_h[sel[closer]] = t_g[closer], n_g[closer]
             hit = t_h < depth
             if hit.any():
                 points = origin + t_h[hit, None] * dirs[hit]
@@ -245,7 +250,7 @@ class Renderer:
                 label[hit] = np.where(painted, LABEL_PAINT, LABEL_HAND)
                 depth = np.where(hit, t_h, depth)
         if obj is not None and object_pose is not None:
-            sel = np.flatnonzero(self._near(cam, np.asarray(object_pose[1], np.float64), obj.radius, gx, gy))
+            sel = np.flatnonzero(self._near(cam, np.asarray(object_pose[1], np.float64), obj.radius, box)[0])
             t_o, n_o, albedo_o = obj.intersect(np.broadcast_to(origin, (len(sel), 3)), dirs[sel], object_pose)
             hit = t_o < depth[sel]
             if hit.any():
@@ -262,15 +267,29 @@ class Renderer:
             # majority of the pixel's rays; a tie goes to the lower label (hand before object before walls)
             label_img[y0:y1 + 1, x0:x1 + 1] = np.argmax(counts, axis=1).reshape(bh, bw).astype(np.uint8)
 
-    def _near(self, cam: int, centre: np.ndarray, radius: float, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
-        """Rays (by pixel position) that may meet a sphere: a square around its projected circle."""
-        z = self.rig.R[cam, 2] @ centre + self.rig.t[cam, 2]
-        if z <= radius * 1.05:
-            return np.ones(gx.shape, bool)
-        u, v = self._single[cam].project(centre[None])[0, 0]
+    def _near(self, cam: int, centres: np.ndarray, radii, box: tuple[int, int, int, int]) -> np.ndarray:
+        """(M,N) which rays of a box (laid out as in _subpixels) may meet each of M spheres: those
+        in a square around its projected circle; all of them for a sphere reaching behind the camera."""
+        x0, y0, x1, y1 = box
+        s = self.supersample
+        rows, cols = (y1 - y0 + 1) * s, (x1 - x0 + 1) * s
+        centres = np.atleast_2d(centres)
+        radii = np.broadcast_to(np.asarray(radii, np.float64), (len(centres),))
+        z = centres @ self.rig.R[cam, 2] + self.rig.t[cam, 2]
+        uv = self._single[cam].project(centres)[0]
         # the circle's radius in pixels, with room for lens distortion near the image's edge
-        r_px = 1.2 * self._focal(cam) * radius / np.sqrt(z * z - radius * radius) + 2
-        return (np.abs(gx - u) <= r_px) & (np.abs(gy - v) <= r_px)
+        with np.errstate(invalid="ignore"):
+            r_px = np.where(z > radii * 1.05, 1.2 * self._focal(cam) * radii / np.sqrt(z * z - radii * radii) + 2,
+                            np.inf)
+        # ray (i, j) of the box looks through pixel position (x0 + (j + 0.5) / s - 0.5, y0 + ...)
+        lo = np.ceil((uv - r_px[:, None] - (x0, y0) + 0.5) * s - 0.5)
+        hi = np.floor((uv + r_px[:, None] - (x0, y0) + 0.5) * s - 0.5)
+        lo = np.clip(np.nan_to_num(lo, nan=0, neginf=0, posinf=cols), 0, (cols, rows)).astype(int)
+        hi = np.clip(np.nan_to_num(hi, nan=0, neginf=-1, posinf=cols), -1, (cols - 1, rows - 1)).astype(int)
+        near = np.zeros((len(centres), rows, cols), bool)
+        for m in range(len(centres)):
+            near[m, lo[m, 1]:hi[m, 1] + 1, lo[m, 0]:hi[m, 0] + 1] = True
+        return near.reshape(len(centres), -1)
 
     _skin_cache: dict[int, np.ndarray] = {}
 

@@ -119,12 +119,12 @@ def _segment_closest(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a + s[..., None] * ab
 
 
-def _ray_end_spheres(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Nearer positive root (n, M) of |o - c + t d| = r for every ray and centre c (M,3)."""
-    dd = np.einsum("nk,nk->n", d, d)[:, None]
-    dot_d = np.einsum("nk,nk->n", o, d)[:, None] - (d @ c.T)
-    norm2 = (np.einsum("nk,nk->n", o, o)[:, None] - 2 * (o @ c.T)
-             + np.einsum("mk,mk->m", c, c))
+def _ray_end_spheres(od: np.ndarray, dd: np.ndarray, oo: np.ndarray, o: np.ndarray, d: np.ndarray,
+                     c: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Nearer positive root (n, M) of |o - c + t d| = r for every ray and centre c (M,3), given the
+    per-ray products od = o.d, dd = d.d and oo = o.o as (n, 1) columns."""
+    dot_d = od - (d @ c.T)
+    norm2 = oo - 2 * (o @ c.T) + np.einsum("mk,mk->m", c, c)
     disc = dot_d * dot_d - dd * (norm2 - r * r)
     t = (-dot_d - np.sqrt(np.maximum(disc, 0.0))) / dd
     return np.where((disc >= 0) & (t > 0), t, np.inf)
@@ -137,11 +137,12 @@ def _ray_capsules_block(o: np.ndarray, d: np.ndarray, a: np.ndarray, b: np.ndarr
     ba = b - a                                                  # (M,3)
     baba = np.einsum("mk,mk->m", ba, ba)
     dd = np.einsum("nk,nk->n", d, d)[:, None]
+    od = np.einsum("nk,nk->n", o, d)[:, None]
+    oo = np.einsum("nk,nk->n", o, o)[:, None]
     bard = (d @ ba.T)
     baoa = (o @ ba.T) - np.einsum("mk,mk->m", a, ba)
-    rdoa = np.einsum("nk,nk->n", o, d)[:, None] - (d @ a.T)
-    oaoa = (np.einsum("nk,nk->n", o, o)[:, None] - 2 * (o @ a.T)
-            + np.einsum("mk,mk->m", a, a))
+    rdoa = od - (d @ a.T)
+    oaoa = oo - 2 * (o @ a.T) + np.einsum("mk,mk->m", a, a)
     qa = baba * dd - bard * bard
     qb = baba * rdoa - baoa * bard
     qc = baba * oaoa - baoa * baoa - r * r * baba
@@ -150,8 +151,8 @@ def _ray_capsules_block(o: np.ndarray, d: np.ndarray, a: np.ndarray, b: np.ndarr
         t_side = (-qb - np.sqrt(np.maximum(disc, 0.0))) / qa
     y = baoa + t_side * bard
     side_ok = (disc >= 0) & (qa > 1e-20 * baba) & (t_side > 0) & (y >= 0) & (y <= baba)
-    t = np.minimum(np.where(side_ok, t_side, np.inf), _ray_end_spheres(o, d, a, r))
-    return np.minimum(t, _ray_end_spheres(o, d, b, r))
+    t = np.minimum(np.where(side_ok, t_side, np.inf), _ray_end_spheres(od, dd, oo, o, d, a, r))
+    return np.minimum(t, _ray_end_spheres(od, dd, oo, o, d, b, r))
 
 
 def ray_capsules(o: np.ndarray, d: np.ndarray, a: np.ndarray, b: np.ndarray,

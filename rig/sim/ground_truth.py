@@ -91,8 +91,10 @@ def write_ground_truth(cube, path, label_frames=None) -> Path:
             g = f.create_group("labels")
             g["frames"] = label_frames
             h, w = int(cams.size[:, 1].max()), int(cams.size[:, 0].max())
+            # h5py cannot chunk an empty dataset: no labels asked for, a plain empty one
+            chunked = dict(chunks=(1, 1, h, w), **GZIP) if len(label_frames) else {}
             images = g.create_dataset("image", shape=(len(cams), len(label_frames), h, w), dtype=np.uint8,
-                                      chunks=(1, 1, h, w), **GZIP)
+                                      **chunked)
             for c in range(len(cams)):
                 for j, frame in enumerate(label_frames):
                     t = exposure[c, frame] if exposure[c, frame] >= 0 else ticks[frame]

@@ -1,0 +1,48 @@
+"""`manus-capture sync-report TAKE [--force]`: validate the synchronization of a recorded take."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+
+@click.command("sync-report", context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("take", type=click.Path(path_type=Path))
+@click.option("--force", is_flag=True, help="Replace an existing sync_report.json/.md.")
+@click.option("--tolerance-ms", type=click.FloatRange(min=0, min_open=True), default=3.0, show_default=True,
+              help="Exposures of a frame group should lie within this (95th percentile).")
+@click.option("--max-drop-pct", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="Largest share of dropped frames a camera may have.")
+@click.option("--optical/--no-optical", default=True, show_default=True,
+              help="Check the timestamps against the LED flashes in take.json's LED log.")
+def command(take: Path, force: bool, tolerance_ms: float, max_drop_pct: float, optical: bool) -> None:
+    """Recompute TAKE/sync_report.json, sync_report.md and sync_timeline.png.
+
+    Per camera: clock offset and drift (robust fit of device to host time), drops from sequence
+    gaps, timestamp faults, frame-interval jitter. Per take: frame groups on the nominal ticks,
+    the exposure spread within them, the LED optical check and a verdict. Exit code 1 when the
+    verdict is fail. See docs/sync.md.
+    """
+    from tqdm import tqdm
+
+    from dataset_tools.sync import SyncSettings, refuse_overwrite, sync_take, take_flashes
+    from dataset_tools.take import Take
+
+    tk = Take(take)
+    refuse_overwrite(tk.path, force)
+    settings = SyncSettings(tolerance_ms=tolerance_ms, max_drop_pct=max_drop_pct)
+    with tqdm(total=len(tk.cameras), unit="camera", desc="optical check", file=sys.stderr,
+              disable=not (optical and take_flashes(tk))) as bar:
+        report = sync_take(tk.path, force=force, optical=optical, settings=settings, progress=bar.update)
+    sp = report["spread_ms"]
+    dropped = sum(c["frames_dropped"] for c in report["cameras"].values())
+    spread = "n/a" if sp["p95"] is None else f"{sp['p95']:.3f} ms"
+    for reason in report["reasons"]:
+        click.echo(f"  fail: {reason}", err=True)
+    click.echo(f"sync-report: {tk.path.name}: {report['verdict']} ({len(report['cameras'])} cameras, "
+               f"{report['groups']} groups, {report['complete_groups']} complete, spread p95 {spread}, "
+               f"{dropped} drops) -> {tk.path / 'sync_report.json'}")
+    if report["verdict"] != "pass":
+        click.get_current_context().exit(1)

@@ -1,0 +1,133 @@
+"""Multi-view consistency: carve an occupancy volume from the views' masks, project it back.
+
+A voxel is kept when (almost) every calibrated view that looks at it sees foreground there: one
+view's miss is forgiven (a hole in that view), so the volume survives a single view's false
+negatives, and a false positive of one view finds no support in the others and disappears from
+the volume. Projected back, the volume drops each view's unsupported blobs and fills its holes.
+The carving is coarse-to-fine (2 cm, then 5 mm inside the kept cells), with vectorized
+projections: a few hundred thousand points per level.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..cameras import CameraRig
+from .background import SegmentationError, fill_holes
+
+
+@dataclass(frozen=True)
+class Occupancy:
+    """Kept voxel centres (N,3) in the world and the voxel edge (m)."""
+
+    centres: np.ndarray
+    voxel: float
+
+
+def default_bounds(rig: CameraRig, margin: float = 0.1) -> np.ndarray:
+    """The box (2,3) inside the cameras' centres (the cube), shrunk by `margin` of its size."""
+    lo, hi = rig.centers.min(axis=0), rig.centers.max(axis=0)
+    pad = (hi - lo) * margin
+    return np.stack([lo + pad, hi - pad])
+
+
+def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, points: np.ndarray,
+           half: float) -> tuple[np.ndarray, np.ndarray]:
+    """(seen, hit) counts per point over the views in `use`: seen when it projects into the image
+    in front of the camera, hit when a mask pixel lies within the voxel's projected radius."""
+    uv = rig.project(points)
+    depth = np.einsum("cij,nj->cni", rig.R, points)[..., 2] + rig.t[:, None, 2]
+    seen = np.zeros(len(points), np.int32)
+    hit = np.zeros(len(points), np.int32)
+    for c in np.flatnonzero(use):
+        h, w = masks[c].shape
+        x, y = np.rint(uv[c, :, 0]).astype(np.int64), np.rint(uv[c, :, 1]).astype(np.int64)
+        inside = (depth[c] > 1e-3) & (x >= 0) & (y >= 0) & (x < w) & (y < h)
+        radius = rig.K[c, 0, 0] * half * np.sqrt(3) / np.maximum(depth[c], 1e-3) + 1.0
+        d = np.full(len(points), np.inf, np.float32)
+        d[inside] = dist[c][y[inside], x[inside]]
+        seen += inside
+        hit += inside & (d <= radius)
+    return seen, hit
+
+
+def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, voxel: float = 0.005,
+          coarse: float = 0.02, misses: int = 1, min_views: int = 2) -> Occupancy:
+    """Occupancy of the foreground seen in masks (C,H,W) bool of the rig's views.
+
+    Views with an empty mask say nothing (the hand may be hidden from them behind the table) and
+    are left out. A voxel is kept when it is a hit in all but `misses` of the views that see it,
+    and in at least `min_views`."""
+    masks = np.asarray(masks, bool)
+    if masks.shape[0] != len(rig.ids):
+        raise SegmentationError(f"carve: {masks.shape[0]} masks for {len(rig.ids)} cameras")
+    use = masks.reshape(len(masks), -1).any(axis=1)
+    if np.count_nonzero(use) < min_views:
+        raise SegmentationError(f"carve: foreground in {np.count_nonzero(use)} views, need {min_views}")
+    dist = [cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, 3) for m in masks]
+    bounds = default_bounds(rig) if bounds is None else np.asarray(bounds, float)
+    axes = [np.arange(lo + coarse / 2, hi, coarse) for lo, hi in bounds.T]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    size = coarse
+    while True:
+        seen, hit = _votes(rig, masks, dist, use, points, size / 2)
+        points = points[(hit >= np.maximum(seen - misses, min_views))]
+        if size <= voxel * 1.001 or not len(points):
+            return Occupancy(points, size)
+        factor = max(2, int(round(size / voxel)))
+        size = size / factor
+        offsets = (np.stack(np.meshgrid(*[np.arange(factor)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) * size
+        points = (points[:, None, :] - size * factor / 2 + offsets[None]).reshape(-1, 3)
+
+
+def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, int]) -> np.ndarray:
+    """Silhouettes (C,H,W) bool of the voxels: their centres and corners drawn, then closed."""
+    h, w = shape
+    out = np.zeros((len(rig.ids), h, w), bool)
+    if not len(occupancy.centres):
+        return out
+    corners = np.stack(np.meshgrid(*[[-0.5, 0.0, 0.5]] * 3, indexing="ij"), -1).reshape(-1, 3) * occupancy.voxel
+    points = (occupancy.centres[:, None] + corners[None]).reshape(-1, 3)
+    uv = np.rint(rig.project(points)).astype(np.int64)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    for c in range(len(rig.ids)):
+        x, y = uv[c, :, 0], uv[c, :, 1]
+        ok = (x >= 0) & (y >= 0) & (x < w) & (y < h)
+        img = np.zeros((h, w), np.uint8)
+        img[y[ok], x[ok]] = 1
+        out[c] = cv2.morphologyEx(img, cv2.MORPH_CLOSE, kernel) > 0
+    return out
+
+
+def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2, **carve_options) -> tuple[np.ndarray, dict]:
+    """Masks (C,H,W) made consistent across the views, and a report.
+
+    Each view keeps its own (pixel-accurate) foreground where the carved volume supports it
+    (within `support_px`), and gets its holes filled where the volume covers them."""
+    masks = np.asarray(masks, bool)
+    occupancy = carve(rig, masks, **carve_options)
+    if not len(occupancy.centres):
+        warnings.warn("multi-view consistency: the views' masks share no volume; masks left as they are",
+                      stacklevel=2)
+        return masks.copy(), {"voxels": 0, "dropped_px": [0] * len(masks), "filled_px": [0] * len(masks)}
+    projected = project_occupancy(rig, occupancy, masks.shape[1:])
+    kernel = np.ones((2 * support_px + 1,) * 2, np.uint8)
+    out = np.empty_like(masks)
+    dropped, filled = [], []
+    for c, (mask, proj) in enumerate(zip(masks, projected)):
+        if not mask.any():
+            out[c] = mask   # a view that saw nothing (occluded) is not filled from the others
+            dropped.append(0)
+            filled.append(0)
+            continue
+        kept = mask & (cv2.dilate(proj.astype(np.uint8), kernel) > 0)
+        done = kept | (fill_holes(kept) & proj)
+        out[c] = done
+        dropped.append(int(np.count_nonzero(mask & ~kept)))
+        filled.append(int(np.count_nonzero(done & ~kept)))
+    return out, {"voxels": int(len(occupancy.centres)), "voxel_m": occupancy.voxel, "dropped_px": dropped,
+                 "filled_px": filled}

@@ -1,0 +1,168 @@
+"""Segmentation of recorded take folders into DATASET.h5 (the `segment` command's work)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..cameras import CameraRig
+from ..take import Take
+from .background import BackgroundModel, SegmentationError
+from .colour import PaintKey
+from .paint import paint_masks
+from .views import hand_object_masks, object_colour, paint_key_from_object
+
+
+def sample_frames(take: Take, cam: str, count: int = 5) -> np.ndarray:
+    """`count` frames (N,H,W,3) spread evenly over one camera of a take."""
+    n = take.frame_count(cam)
+    if n == 0:
+        raise SegmentationError(f"{take.path}: camera {cam} has no frames")
+    return np.stack([take.read_frame(cam, int(k)) for k in np.unique(np.linspace(0, n - 1, count).astype(int))])
+
+
+def backgrounds_for(take: Take, background: Take, report: dict) -> list[BackgroundModel | None]:
+    """One background per camera of `take`; a camera missing from the background take gets None
+    and a warning in the report (its masks stay empty)."""
+    out = []
+    for cam in take.cameras:
+        if cam not in background.cameras or background.frame_count(cam) == 0:
+            report["warnings"].append(f"camera {cam}: no frames in background take {background.path}; no masks")
+            out.append(None)
+        else:
+            out.append(BackgroundModel.fit(sample_frames(background, cam)))
+    if all(b is None for b in out):
+        raise SegmentationError(f"{background.path}: shares no camera with {take.path}")
+    return out
+
+
+def _object_frames(obj: Take, cameras, backgrounds) -> tuple[np.ndarray, list]:
+    images, bgs = [], []
+    for cam, bg in zip(cameras, backgrounds):
+        if bg is not None and cam in obj.cameras and obj.frame_count(cam):
+            frames = sample_frames(obj, cam, 2)
+            images.extend(frames)
+            bgs.extend([bg] * len(frames))
+    return np.stack(images), bgs
+
+
+def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_path: Path | None = None,
+                 swatch=None, every: int = 1, progress: Callable | None = None) -> dict:
+    """Masks of a take: {"frame_ns", "hand" (T,C,H,W), "object", "paint" (C,H,W) or None, "report"}."""
+    from ..annotate import frame_groups_from_host_times
+
+    take, background = Take(take_path), Take(background_path)
+    report: dict = {"warnings": []}
+    missing = [c for c in take.cameras if c not in rig.ids]
+    if missing:
+        raise SegmentationError(f"{take.path}: cameras {', '.join(missing)} are not in the calibration")
+    rig = rig.subset(list(take.cameras))
+    backgrounds = backgrounds_for(take, background, report)
+    model = key = None
+    if object_path is not None:
+        images, bgs = _object_frames(Take(object_path), take.cameras, backgrounds)
+        model = object_colour(images, bgs)
+        key = paint_key_from_object(images, bgs) if swatch is None else None
+    if swatch is not None:
+        key = PaintKey.from_swatch(swatch)
+    frame_ns, frame_index = frame_groups_from_host_times(take)
+    frame_ns, frame_index = frame_ns[::every], frame_index[::every]
+    w, h = (int(v) for v in rig.size[0])
+    hand = np.zeros((len(frame_ns), len(take.cameras), h, w), bool)
+    obj = np.zeros_like(hand)
+    for t in range(len(frame_ns)):
+        images = np.zeros((len(take.cameras), h, w, 3), np.uint8)
+        present = []
+        for c, cam in enumerate(take.cameras):
+            if frame_index[t, c] >= 0:
+                images[c] = take.read_frame(cam, int(frame_index[t, c]))
+            present.append(frame_index[t, c] >= 0)
+        bgs = [b if p else None for b, p in zip(backgrounds, present)]
+        hand[t], obj[t], _ = hand_object_masks(images, bgs, rig, model)
+        if progress:
+            progress(1)
+    paint = None
+    if take.meta.get("kind") == "canonical":
+        if key is None:
+            report["warnings"].append("canonical take without --object-take or --swatch: no paint masks")
+        else:
+            middle = len(frame_ns) // 2
+            images = np.stack([take.read_frame(cam, int(max(frame_index[middle, c], 0)))
+                               for c, cam in enumerate(take.cameras)])
+            paint, paint_report = paint_masks(images, hand[middle], key)
+            report["paint"] = paint_report
+            report["warnings"].extend(paint_report["warnings"])
+    for message in report["warnings"]:
+        warnings.warn(message, stacklevel=2)
+    return {"frame_ns": frame_ns, "hand": hand, "object": obj, "paint": paint, "report": report,
+            "cameras": list(take.cameras)}
+
+
+def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
+    """Add masks/hand, masks/object (and paint/masks) to take `key` of DATASET.h5, atomically:
+    a copy of the file is changed and renamed over it. (DatasetWriter writes whole annotations;
+    masks come later, from another command, so they are added to the take's group here.)"""
+    import h5py
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        if path.exists():
+            shutil.copyfile(path, tmp)
+        with h5py.File(tmp, "a") as f:
+            f.attrs.setdefault("format", "manus-capture dataset")
+            f.attrs.setdefault("version", 1)
+            group = f.require_group(key)
+            names = [("masks/hand", result["hand"]), ("masks/object", result["object"])]
+            if result["paint"] is not None:
+                names.append(("paint/masks", result["paint"]))
+            for name, data in names:
+                if name in group:
+                    del group[name]
+                chunks = (1,) + data.shape[1:] if data.ndim == 4 else None
+                group.create_dataset(name, data=data, compression="gzip", compression_opts=4, chunks=chunks)
+            if "frame_ns" not in group:
+                group.create_dataset("masks/frame_ns", data=result["frame_ns"])
+            group.attrs["mask_cameras"] = result["cameras"]
+            for k, v in attrs.items():
+                group.attrs[k] = v
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_overlays(folder: Path, take: Take, result: dict, t: int = 0) -> list[Path]:
+    """PNG overlays of group t (hand red, object blue, paint green) for a quick look."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for c, cam in enumerate(result["cameras"]):
+        if take.frame_count(cam) == 0:
+            continue
+        image = take.read_frame(cam, min(t, take.frame_count(cam) - 1)).astype(np.float32)
+        tint = np.zeros_like(image)
+        tint[result["hand"][t, c]] = (0, 0, 255)
+        tint[result["object"][t, c]] = (255, 0, 0)
+        if result["paint"] is not None:
+            tint[result["paint"][c]] = (0, 255, 0)
+        shown = np.where(tint.any(axis=-1, keepdims=True), 0.5 * image + 0.5 * tint, image)
+        target = folder / f"{cam}.png"
+        ok, buf = cv2.imencode(".png", shown.astype(np.uint8))
+        if ok:
+            from ..fileio import write_atomic
+            write_atomic(target, buf.tobytes())
+            out.append(target)
+    return out

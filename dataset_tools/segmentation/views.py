@@ -1,0 +1,65 @@
+"""Hand and object masks of one frame group (all views at once), from backgrounds and colours."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from ..cameras import CameraRig
+from .background import BackgroundModel, SegmentationError, remove_small
+from .colour import ColourModel, PaintKey
+from .multiview import consistent_masks
+
+
+def foreground_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None], min_area: int = 8) -> np.ndarray:
+    """Foreground (C,H,W) of views (C,H,W,3); a view without a background gets an empty mask."""
+    images = np.asarray(images)
+    out = np.zeros(images.shape[:3], bool)
+    for c, (image, bg) in enumerate(zip(images, backgrounds)):
+        if bg is not None:
+            out[c] = bg.foreground(image, min_area=min_area)
+    return out
+
+
+def object_pixels(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None]) -> np.ndarray:
+    """Pixels (N,3) of an object take's foreground (its object), eroded off the mixed edges."""
+    masks = foreground_masks(images, backgrounds, min_area=20)
+    kernel = np.ones((3, 3), np.uint8)
+    inner = np.stack([cv2.erode(m.astype(np.uint8), kernel) > 0 for m in masks])
+    if np.count_nonzero(inner) < 20:
+        raise SegmentationError("object take: the object is not seen against the background in any view")
+    return np.asarray(images, np.float32)[inner]
+
+
+def object_colour(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None]) -> ColourModel:
+    """The object's colour model from frames of the object-only take (against the empty cube)."""
+    return ColourModel.fit(object_pixels(images, backgrounds))
+
+
+def paint_key_from_object(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None]) -> PaintKey:
+    """The paint colour from the painted object in the object take."""
+    return PaintKey.from_pixels(object_pixels(images, backgrounds))
+
+
+def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None],
+                      rig: CameraRig | None = None, object_model: ColourModel | None = None,
+                      min_area: int = 8) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Hand and object masks (C,H,W) of one frame group, and a report.
+
+    Foreground against the empty cube; with a rig, made consistent across the views; split by
+    colour: pixels of the object's colour are object, the rest hand (without an object model,
+    all foreground is hand)."""
+    fg = foreground_masks(images, backgrounds, min_area)
+    report: dict = {"foreground_px": fg.reshape(len(fg), -1).sum(axis=1).tolist()}
+    if rig is not None and np.count_nonzero(fg.reshape(len(fg), -1).any(axis=1)) >= 2:
+        fg, report["multiview"] = consistent_masks(rig, fg)
+    if object_model is None:
+        return fg, np.zeros_like(fg), report
+    obj = np.zeros_like(fg)
+    for c, image in enumerate(np.asarray(images)):
+        if fg[c].any():
+            score = cv2.medianBlur(object_model.matches(image).astype(np.uint8), 3) > 0
+            obj[c] = remove_small(score & fg[c], min_area)
+    return fg & ~obj, obj, report

@@ -17,6 +17,8 @@ _EXPORTS: dict[str, str] = {
     "one_euro": "dataset_tools.one_euro",
     "HandSkeleton": "dataset_tools.hand.skeleton",
     "fit_hand": "dataset_tools.hand.ik",
+    "read_dataset": "dataset_tools.dataset",
+    "frame_groups": "dataset_tools.sync",
     "hand_keypoint_detector": "dataset_tools.keypoints",
     "Detector": "dataset_tools.keypoints",
     "rasterize": "manus_capture.splat",

@@ -1,0 +1,490 @@
+"""The annotate stage: takes -> frame groups -> 2D keypoints -> triangulation -> bone lengths ->
+inverse kinematics -> 1-euro filter -> DATASET.h5 (docs/annotate.md).
+
+    summary = annotate(["S/hand_01", "S/grasp_01"], "CALIB", "DATASET.h5", workers=2)
+    result = annotate_arrays(rig, keypoints2d, frame_ns, bone_lengths)   # the numeric core, no files
+
+Takes are independent once the subject's bone lengths are known, so they run as tasks: inline
+(workers=1), in a local process pool (workers=N) or on a Dask cluster (scheduler="tcp://HOST:PORT").
+Every task returns its arrays to this process, which saves each finished take at once (see
+dataset.DatasetWriter), so an interrupted run resumes with the takes it had not finished, and the
+three ways of running give the same file.
+
+Bone lengths, per session (the take folder's parent), first match wins:
+1. `bones=` (a subject file, or 20 lengths) for every take;
+2. SESSION/subjects/SUBJECT.json when it exists (SUBJECT from SESSION/session.toml, [session] subject);
+3. the session's hand takes (take.json kind = "hand") among the takes of this run: their
+   triangulated joints, robustly averaged (hand.bones), saved as (2) when the session names its
+   subject;
+4. the take itself.
+Every take records where its bones came from (attribute bone_source).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tomllib
+import zlib
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .cameras import CameraRig
+from .dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version
+from .hand.bones import (BoneLengthError, BoneLengths, bone_lengths_from_samples, bone_samples,
+                         estimate_bone_lengths, load_subject, save_subject)
+from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
+from .hand.skeleton import HandSkeleton
+from .one_euro import one_euro
+from .take import Take
+from .triangulation import triangulate_frames
+
+Groups = tuple[np.ndarray, np.ndarray]  # frame_ns (T,), frame_index (T,C)
+
+
+class AnnotateError(ValueError):
+    """Bad input to annotate (calibration, cameras, keypoints, takes); names the file and the problem."""
+
+    exit_code = 2
+
+
+@dataclass(frozen=True)
+class AnnotateOptions:
+    """Settings of the stage. keypoints: where 2D keypoints come from: "auto" (TAKE/keypoints2d.h5
+    when it exists, else the simulated detector when TAKE/ground_truth.h5 exists, else the ONNX
+    detector), "file", "simulated" or "detect"."""
+
+    keypoints: str = "auto"
+    model: str = "mediapipe-hand"
+    device: str = "auto"
+    sim_noise_px: float = 2.0
+    sim_outlier_rate: float = 0.1
+    sim_dropout_rate: float = 0.0
+    sim_seed: int = 0
+    threshold_px: float = 10.0
+    min_views: int = 2
+    min_joints: int = 6
+    ik_poor_m: float = 0.01
+    min_cutoff: float = 1.0
+    beta: float = 10.0
+    beta_translation: float = 300.0
+    d_cutoff: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.keypoints not in ("auto", "file", "simulated", "detect"):
+            raise AnnotateError(f"keypoints = {self.keypoints!r}; use auto, file, simulated or detect")
+
+    @property
+    def filter(self) -> dict:
+        return {"min_cutoff": self.min_cutoff, "beta": self.beta, "beta_translation": self.beta_translation,
+                "d_cutoff": self.d_cutoff}
+
+
+# --- the numeric core ------------------------------------------------------------------------------
+
+def filter_angles(angles: np.ndarray, frame_ns: np.ndarray, options: AnnotateOptions = AnnotateOptions()) -> np.ndarray:
+    """1-euro filter of joint angles (T,26) over time: the rotation vector is made continuous
+    first (and brought back to [0, pi] after); the wrist translation (metres, not radians) gets
+    its own beta. NaN samples stay NaN."""
+    t = (np.asarray(frame_ns, np.int64) - int(frame_ns[0])) / 1e9
+    x = unwrap_rotations(angles)
+    rad = [0, 1, 2] + list(range(6, 26))
+    out = np.empty_like(x)
+    out[:, rad] = one_euro(x[:, rad], t, options.min_cutoff, options.beta, options.d_cutoff)
+    out[:, 3:6] = one_euro(x[:, 3:6], t, options.min_cutoff, options.beta_translation, options.d_cutoff)
+    return wrap_rotations(out)
+
+
+def annotate_arrays(rig: CameraRig, keypoints2d: np.ndarray, frame_ns: np.ndarray,
+                    bone_lengths: np.ndarray | None = None, options: AnnotateOptions = AnnotateOptions(),
+                    skeleton: HandSkeleton | None = None) -> dict[str, np.ndarray]:
+    """Triangulate, fit and filter one take's keypoints (T,C,21,3) seen by `rig`'s cameras.
+
+    bone_lengths None: estimated from this take. Returns keypoints3d, keypoints3d_error_px,
+    keypoints3d_views, joint_angles_raw, joint_angles, ik_residual_m, flags, bone_lengths,
+    fitted (T,21,3, of the raw angles).
+    """
+    kp = np.asarray(keypoints2d, dtype=np.float64)
+    frame_ns = np.asarray(frame_ns, dtype=np.int64)
+    if kp.ndim != 4 or kp.shape[1:] != (len(rig), 21, 3) or len(frame_ns) != len(kp):
+        raise AnnotateError(f"keypoints2d must be (T, {len(rig)}, 21, 3) with T = len(frame_ns) = {len(frame_ns)}, "
+                            f"got shape {kp.shape}")
+    if len(frame_ns) > 1 and (np.diff(frame_ns) <= 0).any():
+        raise AnnotateError("frame_ns must increase strictly (one row per frame group)")
+    X, err, used = triangulate_frames(rig, kp, threshold_px=options.threshold_px, min_views=options.min_views,
+                                      return_inliers=True)
+    found = np.isfinite(X).all(-1)
+    if not found.any():
+        raise AnnotateError(f"no joint could be triangulated in any of the {len(kp)} frames "
+                            f"(keypoints missing or seen by fewer than {options.min_views} cameras)")
+    if bone_lengths is None:
+        bone_lengths = estimate_bone_lengths(X, err).bone_lengths
+    angles, fitted, info = fit_hand(X, bone_lengths, skeleton=skeleton, min_joints=options.min_joints,
+                                    return_info=True)
+    filtered = filter_angles(angles, frame_ns, options)
+    flags = np.zeros(len(kp), np.uint8)
+    flags[~info.valid] |= FLAGS["no_hand"]
+    flags[~found.all(1)] |= FLAGS["missing_joints"]
+    with np.errstate(invalid="ignore"):
+        flags[info.residual > options.ik_poor_m] |= FLAGS["ik_poor"]
+    return {"keypoints3d": X, "keypoints3d_error_px": err, "keypoints3d_views": used.sum(1).astype(np.int16),
+            "joint_angles_raw": angles, "joint_angles": filtered, "ik_residual_m": info.residual,
+            "flags": flags, "bone_lengths": np.asarray(bone_lengths, np.float64), "fitted": fitted}
+
+
+# --- frame groups and keypoints of a take -----------------------------------------------------------
+
+def frame_groups_from_host_times(take: Take, fps: float | None = None) -> Groups:
+    """Frame groups by rounding host arrival times to the nominal tick (a fallback for takes that
+    have no sync result): the tick phase is the circular mean of all arrivals modulo the period,
+    so the rounding boundaries fall half a period away from where frames arrive. A camera with two
+    frames on one tick keeps the one nearer the tick. frame_ns is the tick time."""
+    fps = fps or take.fps
+    hosts = {cam: take.camera_frames(cam)["t_host_ns"] for cam in take.cameras}
+    every = np.concatenate([h for h in hosts.values()]) if hosts else np.zeros(0, np.int64)
+    if not len(every):
+        raise AnnotateError(f"{take.path / 'frames.csv'}: no frames")
+    if not fps:
+        steps = np.concatenate([np.diff(np.sort(h)) for h in hosts.values() if len(h) > 1] or [np.zeros(0)])
+        if not len(steps):
+            raise AnnotateError(f"{take.path / 'take.json'}: no fps and too few frames to measure it")
+        fps = 1e9 / float(np.median(steps))
+    period = 1e9 / fps
+    origin = int(every.min())
+    phase = 2 * np.pi * ((every - origin) % period) / period
+    center = np.angle(np.exp(1j * phase).mean()) / (2 * np.pi) * period
+    ticks, rows = [], []
+    for h in hosts.values():
+        rel = (h - origin) - center
+        k = np.rint(rel / period).astype(np.int64)
+        order = np.lexsort((np.abs(rel - k * period), k))
+        first = order[np.r_[True, np.diff(k[order]) != 0]] if len(order) else order
+        ticks.append(k[first])
+        rows.append(first)
+    all_ticks = np.unique(np.concatenate(ticks))
+    frame_index = np.full((len(all_ticks), len(hosts)), -1, np.int64)
+    for c, (k, r) in enumerate(zip(ticks, rows)):
+        frame_index[np.searchsorted(all_ticks, k), c] = r
+    frame_ns = np.rint(origin + center + all_ticks * period).astype(np.int64)
+    return frame_ns, frame_index
+
+
+def _gather(per_camera: Sequence[np.ndarray | None], frame_index: np.ndarray) -> np.ndarray:
+    """(T,C,21,3) keypoints of each group from per-camera (F_c,21,3) arrays (None: camera absent)."""
+    out = np.full(frame_index.shape + (21, 3), np.nan)
+    out[..., 2] = 0.0
+    for c, kp in enumerate(per_camera):
+        if kp is None:
+            continue
+        idx = frame_index[:, c]
+        ok = (idx >= 0) & (idx < len(kp))
+        out[ok, c] = kp[idx[ok]]
+    return out
+
+
+def _keypoints_file(take: Take, frame_index: np.ndarray) -> tuple[np.ndarray, str]:
+    from .keypoints.keypoints2d import read_keypoints_h5
+
+    path = take.path / "keypoints2d.h5"
+    data = read_keypoints_h5(path)
+    for cam in take.cameras:
+        if cam in data.cameras and len(data.cameras[cam].keypoints) != take.frame_count(cam):
+            raise AnnotateError(f"{path}: camera {cam} has {len(data.cameras[cam].keypoints)} frames of keypoints, "
+                                f"frames.csv {take.frame_count(cam)} (detected on another recording?)")
+    per_camera = [data.cameras[c].keypoints if c in data.cameras else None for c in take.cameras]
+    return _gather(per_camera, frame_index), f"file:keypoints2d.h5 (model {data.model})"
+
+
+def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
+    from .keypoints import hand_keypoint_detector
+    from .keypoints.keypoints2d import TakeKeypoints, detect_take, write_keypoints_h5
+
+    detector = hand_keypoint_detector(options.model, device=options.device)
+    result = detect_take(take, detector)
+    write_keypoints_h5(take.path / "keypoints2d.h5", TakeKeypoints(
+        result, detector.name, str(detector.model.session.path), "palm-detector",
+        {"take": str(take.path), "software": software_version(), "providers": ",".join(detector.providers)}))
+    return _gather([result[c].keypoints for c in take.cameras], frame_index), f"detect:{options.model}"
+
+
+def _keypoints_simulated(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
+    from .simulated_detector import SimulatedDetector, keypoints_for_take, read_ground_truth, true_rig
+
+    gt = read_ground_truth(take.path / "ground_truth.h5")
+    host = np.full(frame_index.shape, np.nan)
+    for c, cam in enumerate(take.cameras):
+        t_host = take.camera_frames(cam)["t_host_ns"]
+        ok = frame_index[:, c] >= 0
+        host[ok, c] = t_host[frame_index[ok, c]]
+    # Each take gets its own noise: the same seed on two takes would repeat the same faults.
+    seed = options.sim_seed ^ zlib.crc32(take.path.name.encode())
+    det = SimulatedDetector(options.sim_noise_px, options.sim_outlier_rate, dropout_rate=options.sim_dropout_rate,
+                            seed=seed)
+    kp = keypoints_for_take(gt, true_rig(gt, take.cameras), host, det)
+    return kp, (f"simulated:noise_px={options.sim_noise_px},outlier_rate={options.sim_outlier_rate},"
+                f"dropout_rate={options.sim_dropout_rate},seed={seed}")
+
+
+def take_keypoints(take: Take, frame_index: np.ndarray,
+                   options: AnnotateOptions = AnnotateOptions()) -> tuple[np.ndarray, str]:
+    """Keypoints (T,C,21,3) of the take's frame groups and a description of where they came from."""
+    mode = options.keypoints
+    if mode == "auto":
+        mode = "file" if (take.path / "keypoints2d.h5").exists() else (
+            "simulated" if (take.path / "ground_truth.h5").exists() else "detect")
+    if mode == "file":
+        if not (take.path / "keypoints2d.h5").exists():
+            raise AnnotateError(f"{take.path / 'keypoints2d.h5'}: missing (run `manus-capture detect {take.path}`)")
+        return _keypoints_file(take, frame_index)
+    if mode == "simulated":
+        if not (take.path / "ground_truth.h5").exists():
+            raise AnnotateError(f"{take.path / 'ground_truth.h5'}: missing; the simulated detector needs the "
+                                f"ground truth of a simulated take")
+        return _keypoints_simulated(take, frame_index, options)
+    return _keypoints_detect(take, frame_index, options)
+
+
+# --- tasks -----------------------------------------------------------------------------------------
+
+@dataclass
+class TakeTask:
+    """Everything a worker needs for one take (picklable: runs in a process pool or on Dask)."""
+
+    path: str
+    key: str
+    rig: CameraRig
+    options: AnnotateOptions
+    calibration: dict
+    bones: np.ndarray | None = None
+    bone_source: str = "take"
+    groups: Groups | None = None
+
+
+def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, str]:
+    take = Take(task.path)
+    if task.groups is not None:
+        frame_ns, frame_index = (np.asarray(a, np.int64) for a in task.groups)
+        if frame_index.shape != (len(frame_ns), len(take.cameras)):
+            raise AnnotateError(f"{take.path}: frame groups have frame_index {frame_index.shape}, expected "
+                                f"({len(frame_ns)}, {len(take.cameras)}) for its cameras")
+    else:
+        frame_ns, frame_index = frame_groups_from_host_times(take)
+    kp, source = take_keypoints(take, frame_index, task.options)
+    return take, frame_ns, frame_index, kp, source
+
+
+def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float]:
+    """Per-frame bone lengths (T,20) of a hand take and the error threshold used (for the subject)."""
+    _, _, _, kp, _ = _prepare(task)
+    X, err = triangulate_frames(task.rig, kp, threshold_px=task.options.threshold_px,
+                                min_views=task.options.min_views)
+    return bone_samples(X, err)
+
+
+def annotate_take(task: TakeTask) -> TakeAnnotation:
+    """The whole stage for one take (runs in a worker)."""
+    try:
+        take, frame_ns, frame_index, kp, source = _prepare(task)
+        result = annotate_arrays(task.rig, kp, frame_ns, task.bones, task.options)
+    except (AnnotateError, BoneLengthError) as exc:
+        raise AnnotateError(f"{task.path}: {exc}") from None
+    flags = result["flags"]
+    flags[(frame_index < 0).any(1)] |= FLAGS["incomplete_group"]
+    attrs = {"kind": str(take.meta.get("kind", "")), "take": str(take.path), "status": "complete",
+             "skeleton": skeleton_description(HandSkeleton(result["bone_lengths"])),
+             "software": software_version(), "keypoint_source": source,
+             "bone_source": task.bone_source if task.bones is not None else "take", "filter": task.options.filter,
+             "frame_groups": "given" if task.groups is not None else "host-time rounding (frames.csv)",
+             **task.calibration}
+    return TakeAnnotation(task.key, take.cameras, frame_ns, frame_index, kp.astype(np.float32),
+                          result["keypoints3d"], result["keypoints3d_error_px"], result["keypoints3d_views"],
+                          result["joint_angles_raw"], result["joint_angles"], result["bone_lengths"],
+                          result["ik_residual_m"], flags, attrs)
+
+
+# --- running many takes ----------------------------------------------------------------------------
+
+def _run(fn: Callable, tasks: list[TakeTask], workers: int, scheduler: str | None) -> Iterator[tuple[TakeTask, object]]:
+    """(task, result or exception) as tasks finish: inline, process pool or Dask."""
+    if not tasks:
+        return
+    if scheduler:
+        from distributed import Client, as_completed
+
+        with Client(scheduler) as client:
+            futures = {client.submit(fn, t, pure=False, key=f"annotate-{fn.__name__}-{t.key}"): t for t in tasks}
+            for fut in as_completed(futures):
+                try:
+                    yield futures[fut], fut.result()
+                except Exception as exc:  # a failed take is reported, the others go on
+                    yield futures[fut], exc
+        return
+    if workers > 1:
+        import concurrent.futures as cf
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("forkserver")
+        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            futures = {pool.submit(fn, t): t for t in tasks}
+            for fut in cf.as_completed(futures):
+                try:
+                    yield futures[fut], fut.result()
+                except Exception as exc:
+                    yield futures[fut], exc
+        return
+    for t in tasks:
+        try:
+            yield t, fn(t)
+        except Exception as exc:
+            yield t, exc
+
+
+def take_key(path: Path) -> str:
+    """The take's group in DATASET.h5: SESSION/TAKE (folder names)."""
+    path = Path(path).resolve()
+    return f"{path.parent.name}/{path.name}"
+
+
+def session_subject(session: Path) -> str | None:
+    """The subject named by SESSION/session.toml: `subject` in its [session] table (as the recorder
+    writes it), or at the top level; None when there is no file or no subject."""
+    path = session / "session.toml"
+    if not path.is_file():
+        return None
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise AnnotateError(f"{path}: not valid TOML ({exc})") from None
+    head = doc.get("session")
+    subject = head.get("subject") if isinstance(head, dict) else doc.get("subject")
+    if subject is not None and not isinstance(subject, str):
+        raise AnnotateError(f"{path}: subject: expected a string id, got {subject!r}")
+    return subject or None
+
+
+def _calibration(calib: Path) -> tuple[CameraRig, dict]:
+    from .calibration.formats import load_cameras
+
+    if not calib.exists():
+        raise AnnotateError(f"{calib}: no such calibration (give the calibration folder or its cameras.json)")
+    rig = load_cameras(calib)
+    file = calib / "cameras.json" if calib.is_dir() else calib
+    digest = hashlib.sha256(file.read_bytes()).hexdigest() if file.is_file() else ""
+    return rig, {"calibration": str(calib), "calibration_sha256": digest}
+
+
+@dataclass
+class AnnotateSummary:
+    output: Path
+    annotated: list[str] = field(default_factory=list)
+    resumed: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+    frames: int = 0
+    frames_fitted: int = 0
+    subjects: dict[str, str] = field(default_factory=dict)
+
+
+def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
+             options: AnnotateOptions = AnnotateOptions(), *, workers: int = 1, scheduler: str | None = None,
+             force: bool = False, bones: str | Path | np.ndarray | None = None,
+             groups: Mapping[str, Groups] | Callable[[Take], Groups] | None = None,
+             progress: Callable[[str], None] | None = None) -> AnnotateSummary:
+    """Annotate takes into DATASET.h5 (see the module doc). Returns what was done.
+
+    groups: frame groups per take (a mapping from the take's path or key, or a function of the
+    Take); takes without get host-time rounding. progress(key) is called per finished take.
+    Takes that fail are listed in the summary's `failed`; the others are written.
+    """
+    calib = Path(calib)
+    rig, calibration = _calibration(calib)
+    opened: list[Take] = []
+    for path in takes:
+        take = Take(path)
+        missing = [c for c in take.cameras if c not in rig.ids]
+        if missing:
+            raise AnnotateError(f"{take.path / 'take.json'}: camera(s) {', '.join(missing)} are not in the calibration "
+                                f"{calib} ({len(rig)} cameras: {', '.join(rig.ids[:6])}{'...' if len(rig) > 6 else ''})")
+        opened.append(take)
+    keys = [take_key(t.path) for t in opened]
+    if len(set(keys)) != len(keys):
+        raise AnnotateError(f"the same take is given twice: {sorted(k for k in keys if keys.count(k) > 1)[0]}")
+    writer = DatasetWriter(output, force=force)
+    summary = AnnotateSummary(Path(output))
+    done = writer.done
+
+    def make_task(take: Take, key: str, bone_lengths=None, source="take") -> TakeTask:
+        given = None
+        if callable(groups):
+            given = groups(take)
+        elif groups is not None:
+            given = groups.get(str(take.path), groups.get(key))
+        return TakeTask(str(take.path), key, rig.subset(take.cameras), options, calibration,
+                        None if bone_lengths is None else np.asarray(bone_lengths, np.float64), source, given)
+
+    todo = [(t, k) for t, k in zip(opened, keys) if k not in done]
+    summary.resumed = [k for k in keys if k in done]
+    for key in summary.resumed if progress else ():
+        progress(key)
+    session_bones = _session_bones(todo, list(zip(opened, keys)), bones, make_task, workers, scheduler, summary)
+    tasks = [make_task(t, k, *session_bones.get(t.path.resolve().parent, (None, "take"))) for t, k in todo]
+    for task, result in _run(annotate_take, tasks, workers, scheduler):
+        if isinstance(result, KeyboardInterrupt):
+            raise result
+        if isinstance(result, BaseException):
+            summary.failed[task.key] = str(result) if isinstance(result, ValueError) else repr(result)
+        else:
+            writer.add(result)
+            summary.annotated.append(task.key)
+            summary.frames += len(result.frame_ns)
+            summary.frames_fitted += int(np.isfinite(result.joint_angles_raw[:, 0]).sum())
+        if progress:
+            progress(task.key)
+    if writer.saved:
+        writer.finalize()
+    return summary
+
+
+def _session_bones(todo, every, bones, make_task, workers, scheduler, summary) -> dict[Path, tuple[np.ndarray, str]]:
+    """Bone lengths (and where they came from) per session folder of the takes to do, following the
+    module doc; the hand takes among `every` take of the run count, also those done before."""
+    sessions = sorted({t.path.resolve().parent for t, _ in todo})
+    if bones is not None:
+        est = load_subject(bones) if isinstance(bones, (str, Path)) else None
+        lengths = est.bone_lengths if est is not None else np.asarray(bones, np.float64)
+        if lengths.shape != (20,):
+            raise AnnotateError(f"bones: expected 20 lengths, got shape {lengths.shape}")
+        return {s: (lengths, f"file:{bones}" if est is not None else "given") for s in sessions}
+    out: dict[Path, tuple[np.ndarray, str]] = {}
+    pending: dict[Path, list[TakeTask]] = {}
+    for session in sessions:
+        subject = session_subject(session)
+        file = session / "subjects" / f"{subject}.json" if subject else None
+        if file is not None and file.is_file():
+            out[session] = (load_subject(file).bone_lengths, f"subject:{file.relative_to(session.parent)}")
+            summary.subjects[session.name] = str(file)
+            continue
+        hand = [make_task(t, k) for t, k in every if t.path.resolve().parent == session and t.meta.get("kind") == "hand"]
+        if hand:
+            pending[session] = hand
+    if not pending:
+        return out
+    samples: dict[Path, list[tuple[np.ndarray, float]]] = {s: [] for s in pending}
+    tasks = [t for hand in pending.values() for t in hand]
+    for task, result in _run(hand_take_samples, tasks, workers, scheduler):
+        if isinstance(result, BaseException):
+            raise AnnotateError(f"{task.path}: bone lengths of the subject: {result}") from None
+        samples[Path(task.path).resolve().parent].append(result)
+    for session, arrays in samples.items():
+        est: BoneLengths = bone_lengths_from_samples(np.concatenate([a for a, _ in arrays]),
+                                                     max(thr for _, thr in arrays))
+        names = [Path(t.path).name for t in pending[session]]
+        subject = session_subject(session)
+        source = f"hand takes: {', '.join(names)}"
+        if subject:
+            file = save_subject(session / "subjects" / f"{subject}.json", subject, est, names, software_version())
+            summary.subjects[session.name] = str(file)
+            source = f"subject:{file.relative_to(session.parent)} (from {', '.join(names)})"
+        out[session] = (est.bone_lengths, source)
+    return out

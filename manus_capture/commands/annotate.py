@@ -1,0 +1,72 @@
+"""`manus-capture annotate`: triangulate, fit the hand skeleton and filter, into DATASET.h5."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import click
+
+
+@click.command("annotate", context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("takes", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--calib", required=True, type=click.Path(path_type=Path),
+              help="The calibration: a folder with cameras.json, or any file load_cameras reads.")
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="DATASET.h5 to write.")
+@click.option("--keypoints", type=click.Choice(["auto", "file", "simulated", "detect"]), default="auto",
+              show_default=True,
+              help="2D keypoints: TAKE/keypoints2d.h5 (file), the simulated detector on ground_truth.h5 "
+                   "(simulated), the ONNX detector (detect); auto picks the first that the take has.")
+@click.option("--model", default="mediapipe-hand", show_default=True,
+              help="Keypoint model for --keypoints detect (or auto without keypoints2d.h5).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+              help="onnxruntime provider for detection.")
+@click.option("--bones", type=click.Path(path_type=Path), default=None,
+              help="A subject file (subjects/SUBJECT.json) to use for every take instead of estimating.")
+@click.option("--workers", type=click.IntRange(1), default=1, show_default=True,
+              help="Takes processed at once in a local process pool.")
+@click.option("--scheduler", default=None, metavar="ADDR",
+              help="Run the takes on a Dask cluster (tcp://HOST:PORT) instead of locally.")
+@click.option("--sim-noise-px", type=click.FloatRange(0), default=2.0, show_default=True,
+              help="Simulated detector: Gaussian noise per axis (px).")
+@click.option("--sim-outliers", type=click.FloatRange(0, 1), default=0.1, show_default=True,
+              help="Simulated detector: fraction of visible joints that are outliers.")
+@click.option("--sim-seed", type=int, default=0, show_default=True, help="Simulated detector: seed.")
+@click.option("--threshold-px", type=click.FloatRange(0, min_open=True), default=10.0, show_default=True,
+              help="Triangulation inlier threshold (px).")
+@click.option("--min-cutoff", type=click.FloatRange(0, min_open=True), default=1.0, show_default=True,
+              help="1-euro filter: minimum cutoff (Hz).")
+@click.option("--beta", type=click.FloatRange(0), default=10.0, show_default=True,
+              help="1-euro filter: speed coefficient for angles (1/rad).")
+@click.option("--force", is_flag=True, help="Recompute takes already in the output (or saved by an interrupted run).")
+def command(takes: tuple[Path, ...], calib: Path, output: Path, keypoints: str, model: str, device: str,
+            bones: Path | None, workers: int, scheduler: str | None, sim_noise_px: float, sim_outliers: float,
+            sim_seed: int, threshold_px: float, min_cutoff: float, beta: float, force: bool) -> None:
+    """Annotate TAKES into a dataset file: frame groups, 2D keypoints, triangulation, the subject's
+    bone lengths, inverse kinematics on the 26-DOF hand, 1-euro filter (docs/annotate.md).
+
+    Takes already in OUTPUT, or finished by an interrupted run, are kept and not computed again
+    (unless --force). Hand takes of a session give the subject's bone lengths, saved as
+    SESSION/subjects/SUBJECT.json; give them in the same run or annotate them first.
+    """
+    from tqdm import tqdm
+
+    from dataset_tools.annotate import AnnotateError, AnnotateOptions, annotate
+
+    options = AnnotateOptions(keypoints=keypoints, model=model, device=device, sim_noise_px=sim_noise_px,
+                              sim_outlier_rate=sim_outliers, sim_seed=sim_seed, threshold_px=threshold_px,
+                              min_cutoff=min_cutoff, beta=beta)
+    start = time.perf_counter()
+    with tqdm(total=len(takes), unit="take", desc="annotate", file=sys.stderr) as bar:
+        summary = annotate(takes, calib, output, options, workers=workers, scheduler=scheduler, force=force,
+                           bones=bones, progress=lambda key: bar.update(1))
+    elapsed = time.perf_counter() - start
+    for key, why in summary.failed.items():
+        click.echo(f"failed: {key}: {why}", err=True)
+    fitted = 100.0 * summary.frames_fitted / max(summary.frames, 1)
+    click.echo(f"{output}: {len(summary.annotated)} takes annotated, {len(summary.resumed)} kept from before, "
+               f"{len(summary.failed)} failed; {summary.frames} frames, hand fitted in {summary.frames_fitted} "
+               f"({fitted:.1f}%); {elapsed:.1f} s")
+    if summary.failed:
+        raise AnnotateError(f"{len(summary.failed)} take(s) failed: {', '.join(summary.failed)}")

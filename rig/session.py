@@ -1,0 +1,187 @@
+"""session.toml: the rig configuration a session was recorded with, who and what, and its takes.
+
+    [session]                 subject, operator, object, paint, created (UTC, ISO 8601), rig
+    [[takes]]                 name, kind, status, reason, started, duration_s, frames, lost_cameras
+    [rig] [[cameras]] ...     the rig.toml tables as recorded (load_rig reads the file as it is)
+
+A session is one rig configuration: every take of it shares the calibration and the clocks, so a
+take recorded with a different configuration goes into a new session (SessionError says which
+line differs). The file is rewritten atomically after every change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import getpass
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from dataset_tools.fileio import write_atomic
+
+from .config import ConfigError, RigConfig, _toml_value, rig_from_dict, rig_to_toml
+
+SESSION_FILE = "session.toml"
+TAKE_KINDS = ("calibration", "hand", "object", "grasp", "canonical")
+RIG_TABLES = ("rig", "cameras", "leds", "storage", "sim")
+TAKE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+
+
+class SessionError(ValueError):
+    """A session folder or session.toml that does not fit the request; names the file."""
+
+    exit_code = 2
+
+
+def utc_now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def check_take_name(name: str) -> str:
+    if not TAKE_NAME.fullmatch(name):
+        raise SessionError(f"take name {name!r}: use letters, digits, '.', '_' and '-' (no '/')")
+    return name
+
+
+def check_kind(kind: str) -> str:
+    if kind not in TAKE_KINDS:
+        raise SessionError(f"take kind {kind!r} is not one of {', '.join(TAKE_KINDS)}")
+    return kind
+
+
+def with_sim_subject(rig: RigConfig, *, obj: str | None = None, paint: bool | None = None,
+                     subject: str | None = None) -> RigConfig:
+    """The rig with its simulated world's object, paint and subject replaced where given."""
+    if rig.sim is None:
+        return rig
+    changes = {k: v for k, v in (("object", obj), ("paint", paint), ("subject", subject)) if v is not None}
+    if not changes:
+        return rig
+    known = ("box", "mug", "sphere")
+    if "object" in changes and changes["object"] not in known:
+        raise SessionError(f"{rig.source}: the simulated cube has no object {changes['object']!r} "
+                           f"(known: {', '.join(known)})")
+    if "subject" in changes:
+        from .sim.hand import SUBJECTS
+        if changes["subject"] not in SUBJECTS:
+            raise SessionError(f"{rig.source}: the simulated cube has no subject {changes['subject']!r} "
+                               f"(known: {', '.join(SUBJECTS)})")
+    return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, **changes))
+
+
+@dataclass
+class Session:
+    """A session folder and its session.toml."""
+
+    path: Path
+    rig: RigConfig
+    subject: str = ""
+    operator: str = ""
+    object: str = ""
+    paint: bool = False
+    created: str = field(default_factory=utc_now)
+    takes: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def file(self) -> Path:
+        return self.path / SESSION_FILE
+
+    def take(self, name: str) -> dict[str, Any] | None:
+        return next((t for t in self.takes if t.get("name") == name), None)
+
+    def update_take(self, name: str, **fields: Any) -> dict[str, Any]:
+        """Add or update the [[takes]] entry of `name` and save the file."""
+        entry = self.take(name)
+        if entry is None:
+            entry = {"name": name}
+            self.takes.append(entry)
+        entry.update({k: v for k, v in fields.items() if v is not None})
+        self.save()
+        return entry
+
+    def to_toml(self) -> str:
+        head = {"subject": self.subject, "operator": self.operator, "object": self.object,
+                "paint": self.paint, "created": self.created, "rig": self.rig.name}
+        lines = ["# manus-capture session (docs/recording.md)", "[session]"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in head.items()]
+        lines.append("")
+        for take in self.takes:
+            lines.append("[[takes]]")
+            lines += [f"{k} = {_toml_value(v)}" for k, v in take.items() if v is not None]
+            lines.append("")
+        return "\n".join(lines) + "\n" + rig_to_toml(self.rig)
+
+    def save(self) -> None:
+        write_atomic(self.file, self.to_toml().encode())
+
+
+def load_session(path: str | Path) -> Session | None:
+    """The session in folder `path`, or None when it has no session.toml yet."""
+    folder = Path(path)
+    file = folder / SESSION_FILE
+    if not file.is_file():
+        return None
+    try:
+        doc = tomllib.loads(file.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SessionError(f"{file}: not valid TOML ({exc})") from None
+    head = doc.get("session")
+    if not isinstance(head, dict):
+        raise SessionError(f"{file}: session: missing (not a session.toml)")
+    try:
+        rig = rig_from_dict({k: doc[k] for k in RIG_TABLES if k in doc}, str(file))
+    except ConfigError as exc:
+        raise SessionError(str(exc)) from None
+    takes = doc.get("takes", [])
+    if not isinstance(takes, list) or not all(isinstance(t, dict) and "name" in t for t in takes):
+        raise SessionError(f"{file}: takes: expected [[takes]] tables with a name")
+    return Session(folder, rig, subject=str(head.get("subject", "")), operator=str(head.get("operator", "")),
+                   object=str(head.get("object", "")), paint=bool(head.get("paint", False)),
+                   created=str(head.get("created", "")), takes=[dict(t) for t in takes])
+
+
+def _first_difference(a: str, b: str) -> str:
+    for la, lb in zip(a.splitlines(), b.splitlines()):
+        if la != lb:
+            return f"{la!r} (session) vs {lb!r}"
+    return "the number of cameras or tables differs"
+
+
+def open_session(path: str | Path, rig: RigConfig, *, subject: str | None = None,
+                 operator: str | None = None, obj: str | None = None, paint: bool | None = None) -> Session:
+    """The session in `path`, created with `rig` if new; its rig, subject and object must match."""
+    folder = Path(path)
+    session = load_session(folder)
+    if session is None:
+        default_subject = rig.sim.subject if rig.sim is not None else ""
+        try:
+            default_operator = getpass.getuser()
+        except (KeyError, OSError):
+            default_operator = ""
+        session = Session(folder, rig, subject=subject or default_subject, operator=operator or default_operator,
+                          object=obj or "", paint=bool(paint))
+        folder.mkdir(parents=True, exist_ok=True)
+        session.save()
+        return session
+    mine, theirs = rig_to_toml(session.rig), rig_to_toml(rig)
+    if mine != theirs:
+        raise SessionError(f"{session.file}: recorded with another rig configuration "
+                           f"({_first_difference(mine, theirs)}); record into a new session")
+    for what, given, stored in (("subject", subject, session.subject), ("operator", operator, session.operator),
+                                ("object", obj, session.object)):
+        if given and stored and given != stored:
+            raise SessionError(f"{session.file}: session.{what} is {stored!r}, not {given!r}; "
+                               "record into a new session")
+    changed = False
+    if obj and not session.object:
+        session.object, changed = obj, True
+    if paint and not session.paint:
+        session.paint, changed = True, True
+    if operator and not session.operator:
+        session.operator, changed = operator, True
+    if changed:
+        session.save()
+    return session

@@ -1,0 +1,451 @@
+"""The recorder against the simulated cube's ground truth: every frame a camera delivered is in the
+take, readable, in frames.csv and in its video; faults and signals finish every file."""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dataset_tools.take import Take
+from manus_capture.cli import cli
+from rig.cameras import CameraDisconnected, CameraInfo, Frame
+from rig.clock import VirtualClock
+from rig.config import rig_to_toml
+from rig.layouts import make_rig
+from rig.mkv import MkvWriter
+from rig.recorder import FLAG_HOST_JPEG, Recorder, StopFlag, flash_offsets, record_take
+from rig.session import load_session
+
+PERIOD_NS = 1e9 / 120
+
+
+def sim_rig(cameras=3, sync="free-run", drop_rate=0.0, **storage):
+    rig = make_rig("cube53", cameras=cameras, resolution=(96, 54), sync=sync, seed=5)
+    cams = tuple(dataclasses.replace(c, sim=dataclasses.replace(c.sim, drop_rate=drop_rate)) for c in rig.cameras)
+    return dataclasses.replace(rig, cameras=cams, storage=dataclasses.replace(rig.storage, **storage))
+
+
+def write_rig(rig, path: Path) -> Path:
+    path.write_text(rig_to_toml(rig))
+    return path
+
+
+def truth(take_dir: Path):
+    with h5py.File(take_dir / "ground_truth.h5") as f:
+        ids = [x.decode() if isinstance(x, bytes) else x for x in f["cameras/ids"][()]]
+        return ids, f["frames/exposure_mid_ns"][()], f["frames/dropped"][()]
+
+
+def check_readable(take_dir: Path) -> dict[str, int]:
+    """Every camera: frames.csv rows == packets == decodable JPEGs, bytes as in frames.csv."""
+    take = Take(take_dir)
+    counts = {}
+    for cam in take.cameras:
+        rows = take.camera_frames(cam)
+        packets = list(take.packets(cam))
+        assert len(packets) == len(rows["seq"]), cam
+        assert [p.size for p in packets] == rows["bytes"].tolist(), cam
+        assert all(cv2.imdecode(p, cv2.IMREAD_COLOR) is not None for p in packets), cam
+        counts[cam] = len(packets)
+    return counts
+
+
+def test_sim_take_stores_every_delivered_frame_and_the_flashes(tmp_path):
+    rig = sim_rig(drop_rate=0.06)
+    result = record_take(rig, tmp_path / "s", "t1", "calibration", 0.3, flash_ms=40, flash_every_s=0.15,
+                         progress=False)
+    take_dir = tmp_path / "s" / "t1"
+    meta = json.loads((take_dir / "take.json").read_text())
+    assert result.status == meta["status"] == "complete" and result.exit_code == 0
+    assert meta["kind"] == "calibration" and meta["sync"] == "free-run" and meta["resolution"] == [96, 54]
+    counts = check_readable(take_dir)
+    ids, exposure, dropped = truth(take_dir)
+    take = Take(take_dir)
+    end = meta["t0_ns"] + 0.3e9
+    n_drops = 0
+    for c, cam in enumerate(ids):
+        rows = take.camera_frames(cam)
+        delivered = np.flatnonzero((exposure[c] >= 0) & ~dropped[c])
+        assert counts[cam] == len(delivered)                     # every delivered frame, nothing else
+        assert rows["seq"].tolist() == delivered.tolist()        # free-run: seq k is tick k
+        gaps = sorted(set(range(rows["seq"][0], rows["seq"][-1] + 1)) - set(rows["seq"].tolist()))
+        assert gaps == np.flatnonzero(dropped[c]).tolist()       # every gap is an injected drop
+        report = next(r for r in meta["cameras"] if r["id"] == cam)
+        assert report["seq_gaps"] == len(gaps) and report["frames"] == counts[cam]
+        n_drops += len(gaps)
+        # rows sit on the right ticks: arrival = mid-exposure + 1 ms + 1.5..3 ms transfer + tail
+        latency_ms = (rows["t_host_ns"] - exposure[c, rows["seq"]]) / 1e6
+        assert latency_ms.min() > 2.4 and latency_ms.max() < 8.0
+        # the take ends with the first frame that arrives after the duration
+        assert rows["t_host_ns"][-1] >= end and rows["t_host_ns"][-2] < end
+    assert n_drops >= 3
+    # the LED flashes are in exactly the frames exposed during them (the sim's lighting follows
+    # the simulated controller, mapped onto the take's clock)
+    flashes = meta["flashes"]
+    assert [f["ms"] for f in flashes] == [40, 40] and all(f["level"] == 0.0 for f in flashes)
+    assert meta["led_log"][0]["cmd"] == "LVL" and [r["cmd"] for r in meta["led_log"][1:]] == ["FLASH", "FLASH"]
+    for c, cam in enumerate(ids):
+        seq = take.camera_frames(cam)["seq"]
+        brightness = np.array([img.mean() for _, img in take.iter_frames(cam)])
+        dark = brightness < (brightness.max() + brightness.min()) / 2
+        t = exposure[c, seq]
+        surely_dark = np.zeros(len(t), bool)
+        surely_bright = np.ones(len(t), bool)
+        for f in flashes:
+            surely_dark |= (t >= f["t_ack_clock_ns"]) & (t < f["t_clock_ns"] + 40e6)
+            surely_bright &= (t < f["t_clock_ns"]) | (t >= f["t_ack_clock_ns"] + 40e6)
+        assert np.all(dark[surely_dark]) and not np.any(dark[surely_bright])
+        assert surely_dark.sum() >= 5
+    session = load_session(tmp_path / "s")
+    assert session.take("t1")["status"] == "complete" and session.take("t1")["frames"] == sum(counts.values())
+    assert json.loads((tmp_path / "s" / "tags.json").read_text())["family"] == "tag36h11"
+
+
+def test_software_trigger_one_frame_per_camera_per_tick(tmp_path):
+    rig = sim_rig(sync="software-trigger")
+    record_take(rig, tmp_path / "s", "t", "calibration", 0.2, progress=False, use_leds=False)
+    take_dir = tmp_path / "s" / "t"
+    meta = json.loads((take_dir / "take.json").read_text())
+    ticks = meta["triggers"]
+    assert ticks["source"] == "software" and ticks["tick"] == list(range(24))   # 0.2 s at 120 FPS
+    nominal = meta["t0_ns"] + np.round(np.arange(24) * PERIOD_NS)
+    assert np.array_equal(ticks["t_sent_ns"], nominal)
+    counts = check_readable(take_dir)
+    ids, exposure, dropped = truth(take_dir)
+    take = Take(take_dir)
+    latency = {c.id: c.sim.trigger_latency_us * 1e3 for c in rig.cameras}
+    for c, cam in enumerate(ids):
+        assert exposure.shape[1] == 24 and np.all(exposure[c] > 0) and not dropped[c].any()
+        assert counts[cam] == 24 and take.camera_frames(cam)["seq"].tolist() == list(range(24))
+        # each exposure follows its own tick's trigger by the camera's latency (30 us jitter)
+        assert np.abs(exposure[c] - nominal - latency[cam]).max() < 150_000
+
+
+def test_hardware_trigger_logs_the_controller_pulses(tmp_path):
+    rig = sim_rig(sync="hardware-trigger")
+    record_take(rig, tmp_path / "s", "t", "calibration", 0.1, progress=False)
+    meta = json.loads((tmp_path / "s" / "t" / "take.json").read_text())
+    trig = meta["triggers"]
+    assert trig["source"] == "controller"
+    assert trig["controller"]["p0"] == 0 and trig["controller"]["rate_hz"] == 120.0
+    assert trig["controller"]["pulses"] >= 1
+    cmds = [(r["cmd"], r["args"]) for r in meta["led_log"]]
+    assert ("TRIG", [120000, 0, 100]) in cmds and ("TRIG", [0, 0, 0]) in cmds
+    assert check_readable(tmp_path / "s" / "t")
+
+
+class Disconnecting:
+    """A camera that goes away after `after` frames."""
+
+    def __init__(self, inner, after: int) -> None:
+        self.inner, self.after, self.n = inner, after, 0
+
+    def read(self, timeout_s: float = 1.0):
+        if self.n >= self.after:
+            raise CameraDisconnected("camera unplugged")
+        self.n += 1
+        return self.inner.read(timeout_s)
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def test_lost_camera_is_reported_and_the_others_go_on(tmp_path):
+    rig = sim_rig()
+    lost = rig.cameras[1].id
+    result = record_take(rig, tmp_path / "s", "t", "calibration", 0.25, progress=False, use_leds=False,
+                         wrap_camera=lambda cid, cam: Disconnecting(cam, 10) if cid == lost else cam)
+    take_dir = tmp_path / "s" / "t"
+    meta = json.loads((take_dir / "take.json").read_text())
+    assert meta["status"] == "complete" and meta["lost_cameras"] == [lost] and result.exit_code == 1
+    report = next(r for r in meta["cameras"] if r["id"] == lost)
+    assert report["status"] == "disconnected" and "unplugged" in report["error"]
+    counts = check_readable(take_dir)
+    ids, exposure, dropped = truth(take_dir)
+    for c, cam in enumerate(ids):
+        delivered = int(((exposure[c] >= 0) & ~dropped[c]).sum())
+        assert counts[cam] == (10 if cam == lost else delivered)
+        if cam != lost:
+            assert delivered >= 30
+    assert load_session(tmp_path / "s").take("t")["lost_cameras"] == [lost]
+
+
+def test_failing_writer_interrupts_the_take_and_keeps_every_file_readable(tmp_path, monkeypatch):
+    rig = sim_rig()
+    victim = rig.cameras[0].id
+    real_write = MkvWriter.write
+
+    def write(self, jpegs):
+        if self.path.stem == victim and self.frames + len(jpegs) > 12:
+            raise OSError(errno.EIO, "Input/output error")
+        real_write(self, jpegs)
+
+    monkeypatch.setattr(MkvWriter, "write", write)
+    result = record_take(rig, tmp_path / "s", "t", "calibration", 2.0, progress=False, use_leds=False)
+    meta = json.loads((tmp_path / "s" / "t" / "take.json").read_text())
+    assert result.status == meta["status"] == "interrupted" and result.exit_code == 1
+    assert meta["reason"].startswith(f"writer of camera {victim} failed: OSError")
+    counts = check_readable(tmp_path / "s" / "t")
+    assert counts[victim] == 12 and all(n < 240 for n in counts.values())
+    assert load_session(tmp_path / "s").take("t")["status"] == "interrupted"
+
+
+def test_full_disk_finishes_the_take(tmp_path):
+    """A real ENOSPC: the session lives on a small tmpfs that fills up during the take."""
+    if shutil.which("unshare") is None or subprocess.run(
+            ["unshare", "-rm", "true"], capture_output=True).returncode != 0:
+        pytest.skip("unprivileged mount namespaces (unshare -rm) are not available")
+    rig_file = write_rig(sim_rig(min_free_gb=0.0), tmp_path / "rig.toml")
+    disk, out = tmp_path / "disk", tmp_path / "out"
+    disk.mkdir()
+    script = f"""
+        mount -t tmpfs -o size=48m tmpfs {disk} || exit 90
+        {sys.executable} -m manus_capture.cli record --rig {rig_file} --session {disk}/s --take t \\
+            --kind calibration --duration 5 > {tmp_path}/stdout 2> {tmp_path}/stderr &
+        pid=$!
+        while [ "$(wc -l < {disk}/s/t/frames.csv 2>/dev/null || echo 0)" -lt 40 ]; do sleep 0.05; done
+        dd if=/dev/zero of={disk}/fill bs=1M 2> /dev/null
+        wait $pid; echo $? > {tmp_path}/rc
+        rm {disk}/fill; cp -a {disk}/s {out}
+    """
+    done = subprocess.run(["unshare", "-rm", "sh", "-c", script], timeout=120)
+    if done.returncode == 90:
+        pytest.skip("cannot mount a tmpfs in a mount namespace here")
+    assert int((tmp_path / "rc").read_text()) == 1, (tmp_path / "stderr").read_text()[-2000:]
+    meta = json.loads((out / "t" / "take.json").read_text())
+    assert meta["status"] == "interrupted" and meta["reason"].startswith("disk full (ENOSPC)")
+    counts = check_readable(out / "t")
+    assert sum(counts.values()) >= 40 and all(n < 600 for n in counts.values())
+    assert "disk full" in (tmp_path / "stdout").read_text()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_the_take_in_order(tmp_path, signum):
+    rig_file = write_rig(sim_rig(drop_rate=0.02), tmp_path / "rig.toml")
+    take_dir = tmp_path / "s" / "t"
+    with open(tmp_path / "err", "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "manus_capture.cli", "record", "--rig", str(rig_file),
+                                 "--session", str(tmp_path / "s"), "--take", "t", "--kind", "calibration",
+                                 "--duration", "60"], stdout=subprocess.PIPE, stderr=err, text=True)
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                csv = take_dir / "frames.csv"
+                if csv.exists() and csv.read_text().count("\n") > 60:
+                    break
+                time.sleep(0.05)
+            proc.send_signal(signum)
+            out, _ = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+    assert proc.returncode == 130, (tmp_path / "err").read_text()[-2000:]
+    meta = json.loads((take_dir / "take.json").read_text())
+    assert meta["status"] == "interrupted" and meta["reason"] == f"stopped by {signal.Signals(signum).name}" + (
+        " (Ctrl-C)" if signum == signal.SIGINT else "")
+    assert "interrupted" in out
+    counts = check_readable(take_dir)
+    ids, exposure, dropped = truth(take_dir)
+    for c, cam in enumerate(ids):   # every frame that reached the host before the signal is kept
+        assert counts[cam] == int(((exposure[c] >= 0) & ~dropped[c]).sum())
+    assert 20 <= sum(counts.values()) < 3 * 7200
+    assert load_session(tmp_path / "s").take("t")["status"] == "interrupted"
+
+
+def test_refuses_to_start_without_disk_and_existing_takes(tmp_path, monkeypatch):
+    rig_file = write_rig(sim_rig(), tmp_path / "rig.toml")
+    args = ["record", "--rig", str(rig_file), "--session", str(tmp_path / "s"), "--take", "t",
+            "--kind", "calibration", "--duration", "60"]
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage._replace(free=int(1.03e9)))
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 2 and "not enough free disk" in res.output and "min_free_gb 1 GB" in res.output
+    assert not (tmp_path / "s").exists()
+    monkeypatch.undo()
+    (tmp_path / "s" / "t").mkdir(parents=True)
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 2 and "take exists; use --force" in res.output
+
+
+def test_session_keeps_one_rig_configuration(tmp_path):
+    rig = sim_rig()
+    record_take(rig, tmp_path / "s", "a", "calibration", 0.05, progress=False, use_leds=False)
+    other = dataclasses.replace(rig, fps=60.0)
+    with pytest.raises(ValueError, match="recorded with another rig configuration.*fps = 120.0"):
+        record_take(other, tmp_path / "s", "b", "calibration", 0.05, progress=False, use_leds=False)
+
+
+class RawCamera:
+    """A machine-vision camera handing out raw pixels on a virtual clock."""
+
+    def __init__(self, cam_id: str, image: np.ndarray, encoding: str, clock: VirtualClock, t0: int) -> None:
+        self.id, self.image, self.encoding, self.clock, self.t0, self.k = cam_id, image, encoding, clock, t0, 0
+
+    def open(self) -> None: ...
+
+    def configure(self) -> None: ...
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def trigger(self) -> None: ...
+
+    def info(self) -> CameraInfo:
+        return CameraInfo(self.id, "aravis", "raw", "0", 64, 48, 120.0, self.encoding)
+
+    def read(self, timeout_s: float = 1.0) -> Frame:
+        t = self.t0 + int(self.k * PERIOD_NS)
+        self.clock.advance_to(t)
+        self.k += 1
+        return Frame(self.image.tobytes(), self.k - 1, t, t, 64, 48, self.encoding)
+
+
+def test_raw_frames_are_jpeg_encoded(tmp_path):
+    rig = make_rig("cube53", cameras=2, resolution=(64, 48), backend="aravis", seed=1)
+    rng = np.random.default_rng(0)
+    gray = cv2.GaussianBlur(rng.integers(0, 256, (48, 64), dtype=np.uint8), (0, 0), 2)
+    yy, xx = np.mgrid[0:48, 0:64]
+    bgr = np.stack([xx * 4, np.full_like(xx, 128), 40 + yy * 4], -1).astype(np.uint8)  # blue ramp across, red down
+    bayer = np.zeros((48, 64), np.uint8)   # RGGB mosaic of `bgr`
+    bayer[0::2, 0::2], bayer[0::2, 1::2] = bgr[0::2, 0::2, 2], bgr[0::2, 1::2, 1]
+    bayer[1::2, 0::2], bayer[1::2, 1::2] = bgr[1::2, 0::2, 1], bgr[1::2, 1::2, 0]
+    clock = VirtualClock(time_scale=0)
+    t0 = clock.now_ns() + 1_000_000
+    ids = [c.id for c in rig.cameras]
+    cams = {ids[0]: RawCamera(ids[0], gray, "mono8", clock, t0),
+            ids[1]: RawCamera(ids[1], bayer, "bayer_rg8", clock, t0)}
+    result = Recorder(rig, tmp_path / "t", "calibration", 0.05, cams, clock, t0_ns=t0, progress=False).run()
+    assert result.status == "complete"
+    take = Take(tmp_path / "t")
+    assert check_readable(tmp_path / "t") == {ids[0]: 7, ids[1]: 7}
+    assert np.all(take.frames["flags"].astype(int) == FLAG_HOST_JPEG)
+    mono = take.read_frame(ids[0], 3)
+    assert np.abs(mono[..., 0].astype(int) - gray).mean() < 3
+    colour = take.read_frame(ids[1], 3).astype(int)
+    inner = (slice(4, -4), slice(4, -4))   # demosaicing is approximate at the borders
+    assert np.abs(colour[inner] - bgr[inner]).mean() < 4
+    assert np.abs(colour[inner] - bgr[inner][..., ::-1]).mean() > 40   # red and blue in their places
+
+
+def test_mkv_is_readable_when_killed_and_rolls_back_failed_writes(tmp_path, monkeypatch):
+    frames = []
+    for k in range(40):
+        img = np.full((32, 48, 3), 6 * k, np.uint8)
+        frames.append(cv2.imencode(".jpg", img)[1].tobytes())
+
+    w = MkvWriter(tmp_path / "a.mkv", 48, 32, 120.0, cluster_frames=16)
+    for f in frames:
+        w.write(f)
+    # a process killed here leaves the file without sizes, cues or duration
+    shutil.copy(tmp_path / "a.mkv", tmp_path / "killed.mkv")
+    assert _packets(tmp_path / "killed.mkv") == frames
+    size = os.path.getsize(tmp_path / "killed.mkv")
+    os.truncate(tmp_path / "killed.mkv", size - 200)        # killed in the middle of a block
+    assert _packets(tmp_path / "killed.mkv") == frames[:39]
+    # a write that fails half-way is cut back to the previous frame
+    real_writev = os.writev
+
+    def half_then_full(fd, parts):
+        real_writev(fd, [b"".join(parts)[:300]])
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("rig.mkv.os.writev", half_then_full)
+    with pytest.raises(OSError, match="No space left"):
+        w.write(frames[0])
+    monkeypatch.undo()
+    assert w.frames == 40
+    w.write(frames[0])
+    w.rollback()        # ... and a frame whose frames.csv row could not be written is removed
+    w.close()
+    assert _packets(tmp_path / "a.mkv") == frames
+    cap = cv2.VideoCapture(str(tmp_path / "a.mkv"))
+    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(120.0, rel=1e-6)
+    assert cap.set(cv2.CAP_PROP_POS_FRAMES, 30)              # cues: seek by frame index
+    ok, img = cap.read()
+    assert ok and abs(int(img[0, 0, 0]) - 6 * 30) <= 2
+    if shutil.which("ffprobe"):   # the reference demuxer finds nothing to complain about
+        probe = subprocess.run(["ffprobe", "-v", "error", "-count_packets", "-show_entries",
+                                "stream=nb_read_packets,codec_name", "-of", "json", str(tmp_path / "a.mkv")],
+                               capture_output=True, text=True, check=True)
+        stream = json.loads(probe.stdout)["streams"][0]
+        assert stream == {"codec_name": "mjpeg", "nb_read_packets": "40"} and probe.stderr == ""
+
+
+def _packets(path: Path) -> list[bytes]:
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_FORMAT, -1])
+    out = []
+    while True:
+        ok, p = cap.read()
+        if not ok:
+            return out
+        out.append(p.reshape(-1).tobytes())
+
+
+def test_flash_offsets_fit_the_take():
+    assert flash_offsets(3.0, 50, 1.0) == pytest.approx([0.475, 1.475, 2.475])
+    assert flash_offsets(0.3, 30, 1.0) == pytest.approx([0.135])       # shorter than a window: its middle
+    assert flash_offsets(0.02, 30, 1.0) == []
+
+
+def test_stop_flag_keeps_the_first_reason():
+    stop = StopFlag()
+    stop.set("disk full")
+    stop.set("stopped by SIGTERM", by_signal=True)
+    assert stop.reason == "disk full" and not stop.by_signal
+    from_handler = StopFlag()
+    from_handler.signal("stopped by SIGINT (Ctrl-C)")        # no lock taken in the handler ...
+    assert from_handler.requested and from_handler.wait(0.0)  # ... the next look turns it into the stop
+    assert from_handler.reason == "stopped by SIGINT (Ctrl-C)" and from_handler.by_signal
+
+
+def test_aravis_fake_camera_records_through_the_same_path(tmp_path):
+    """Aravis's in-process Fake camera (mono8, real time): raw frames are JPEG-encoded as they come."""
+    try:
+        from rig.cameras.aravis import aravis
+        aravis().enable_interface("Fake")
+    except Exception as exc:   # CameraError without Aravis, GLib errors without the Fake interface
+        pytest.skip(f"Aravis 0.8 Fake interface not available ({exc})")
+    rig = make_rig("cube53", cameras=1, resolution=(64, 48), fps=100.0, backend="aravis")
+    cam = dataclasses.replace(rig.cameras[0], device="Fake_1", exposure_us=8000.0, gain_db=0.0)  # a visible ramp
+    rig = dataclasses.replace(rig, cameras=(cam,))
+    raw: list[Frame] = []
+
+    class Keep:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def read(self, timeout_s: float = 1.0):
+            frame = self.inner.read(timeout_s)
+            if frame is not None:
+                raw.append(frame)
+            return frame
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    result = record_take(rig, tmp_path / "s", "t", "calibration", 0.3, use_leds=False, progress=False,
+                         wrap_camera=lambda cid, c: Keep(c))
+    assert result.status == "complete" and result.cameras[0].encoding == "mono8"
+    assert check_readable(tmp_path / "s" / "t") == {cam.id: len(raw)} and 20 <= len(raw) <= 45
+    take = Take(tmp_path / "s" / "t")
+    rows = take.camera_frames(cam.id)
+    assert rows["seq"].tolist() == [f.seq for f in raw] and np.all(rows["flags"].astype(int) == FLAG_HOST_JPEG)
+    image = take.read_frame(cam.id, 5)[..., 0].astype(int)
+    pixels = np.frombuffer(raw[5].data, np.uint8)[:64 * 48].reshape(48, 64)
+    assert pixels.std() > 10 and np.abs(image - pixels).mean() < 3

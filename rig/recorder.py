@@ -117,6 +117,8 @@ class CameraReport:
     height: int
     fps: float
     pixel_format: str
+    exposure_us: float | None = None
+    latency_ms: float | None = None  # exposure end -> earliest host arrival, where the rig knows it
     model: str = ""
     serial: str = ""
     encoding: str = ""
@@ -619,7 +621,10 @@ class Recorder:
         self.streams: list[_Stream] = []
         for cam_id, camera in self.cameras.items():
             c = configs[cam_id]
-            report = CameraReport(cam_id, c.backend, c.width, c.height, c.fps, c.pixel_format)
+            # the sync stage needs the transfer latency floor to tell it from a clock offset; the
+            # simulated cameras declare theirs in rig.toml
+            report = CameraReport(cam_id, c.backend, c.width, c.height, c.fps, c.pixel_format, c.exposure_us,
+                                  c.sim.latency_ms if c.sim is not None else None)
             self.streams.append(_Stream(self, cam_id, camera, report, max(8, math.ceil(c.fps * buffer_s))))
         self.csv: _CsvSink | None = None
         self.start_ns: int | None = None

@@ -262,22 +262,37 @@ class TakeTask:
     groups: Groups | None = None
 
 
-def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, str]:
+def sync_groups(take: Take) -> tuple[Groups, str]:
+    """The take's frame groups from the sync stage (device clocks fitted to the host clock); host-time
+    rounding where the sync stage cannot group it (too few frames to fit a clock)."""
+    from .sync import SyncError, frame_groups
+
+    try:
+        groups = frame_groups(take.path)
+    except SyncError:
+        return frame_groups_from_host_times(take), "host-time rounding (frames.csv)"
+    order = [groups.cameras.index(c) for c in take.cameras]
+    return (groups.frame_ns, groups.frame_index[:, order]), "sync (fitted device clocks)"
+
+
+def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, str, str]:
     take = Take(task.path)
     if task.groups is not None:
         frame_ns, frame_index = (np.asarray(a, np.int64) for a in task.groups)
         if frame_index.shape != (len(frame_ns), len(take.cameras)):
             raise AnnotateError(f"{take.path}: frame groups have frame_index {frame_index.shape}, expected "
                                 f"({len(frame_ns)}, {len(take.cameras)}) for its cameras")
+        grouping = "given"
     else:
-        frame_ns, frame_index = frame_groups_from_host_times(take)
+        (frame_ns, frame_index), grouping = sync_groups(take)
+        frame_ns, frame_index = np.asarray(frame_ns, np.int64), np.asarray(frame_index, np.int64)
     kp, source = take_keypoints(take, frame_index, task.options)
-    return take, frame_ns, frame_index, kp, source
+    return take, frame_ns, frame_index, kp, source, grouping
 
 
 def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float]:
     """Per-frame bone lengths (T,20) of a hand take and the error threshold used (for the subject)."""
-    _, _, _, kp, _ = _prepare(task)
+    _, _, _, kp, _, _ = _prepare(task)
     X, err = triangulate_frames(task.rig, kp, threshold_px=task.options.threshold_px,
                                 min_views=task.options.min_views)
     return bone_samples(X, err)
@@ -286,7 +301,7 @@ def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float]:
 def annotate_take(task: TakeTask) -> TakeAnnotation:
     """The whole stage for one take (runs in a worker)."""
     try:
-        take, frame_ns, frame_index, kp, source = _prepare(task)
+        take, frame_ns, frame_index, kp, source, grouping = _prepare(task)
         result = annotate_arrays(task.rig, kp, frame_ns, task.bones, task.options)
     except (AnnotateError, BoneLengthError) as exc:
         raise AnnotateError(f"{task.path}: {exc}") from None
@@ -296,7 +311,7 @@ def annotate_take(task: TakeTask) -> TakeAnnotation:
              "skeleton": skeleton_description(HandSkeleton(result["bone_lengths"])),
              "software": software_version(), "keypoint_source": source,
              "bone_source": task.bone_source if task.bones is not None else "take", "filter": task.options.filter,
-             "frame_groups": "given" if task.groups is not None else "host-time rounding (frames.csv)",
+             "frame_groups": grouping,
              **task.calibration}
     return TakeAnnotation(task.key, take.cameras, frame_ns, frame_index, kp.astype(np.float32),
                           result["keypoints3d"], result["keypoints3d_error_px"], result["keypoints3d_views"],
@@ -394,7 +409,7 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
     """Annotate takes into DATASET.h5 (see the module doc). Returns what was done.
 
     groups: frame groups per take (a mapping from the take's path or key, or a function of the
-    Take); takes without get host-time rounding. progress(key) is called per finished take.
+    Take); takes without get the sync stage's groups. progress(key) is called per finished take.
     Takes that fail are listed in the summary's `failed`; the others are written.
     """
     calib = Path(calib)

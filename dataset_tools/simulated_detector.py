@@ -305,14 +305,16 @@ class _GroundTruthLabels(Mapping):
     """{row of the take's frame groups: (C,H,W) labels} from ground_truth.h5, read one row at a
     time; a camera whose frame in that row has no labels gets background (0) everywhere."""
 
-    def __init__(self, path: Path, size: tuple[int, int], rows: dict[int, list[tuple[int, int, int]]]) -> None:
+    def __init__(self, path: Path, size: tuple[int, int], rows: dict[int, list[tuple[int, int, int]]],
+                 n_cameras: int) -> None:
         self.path, self.size, self.rows = path, size, rows   # row -> [(camera, gt camera, label index)]
+        self.n_cameras = n_cameras
 
     def __getitem__(self, row: int) -> np.ndarray:
         import h5py
 
         entries = self.rows[row]
-        out = np.zeros((1 + max(c for c, _, _ in entries),) + self.size, np.uint8)
+        out = np.zeros((self.n_cameras,) + self.size, np.uint8)
         with h5py.File(self.path, "r") as f:
             for c, gt_cam, index in entries:
                 image = f["labels/image"][gt_cam, index]
@@ -345,7 +347,7 @@ def keypoints_for_take(gt: Mapping[str, np.ndarray], rig: CameraRig, host_ns: np
         for r, c in zip(*np.nonzero(np.isin(ticks, list(label_index)))):
             rows.setdefault(int(r), []).append((int(c), ids.index(rig.ids[c]), label_index[int(ticks[r, c])]))
         height, width = int(rig.size[:, 1].max()), int(rig.size[:, 0].max())
-        labels = _GroundTruthLabels(Path(str(gt["path"])), (height, width), rows)
+        labels = _GroundTruthLabels(Path(str(gt["path"])), (height, width), rows, len(rig.ids))
     kp = detector.detect(rig, joints, labels=labels)
     kp[~np.isfinite(exposure)] = (np.nan, np.nan, 0.0)
     return kp

@@ -29,16 +29,14 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .fileio import write_atomic
+from .fileio import atomic_output, write_atomic
 from .hand.skeleton import DOF_NAMES, JOINT_NAMES, HandSkeleton
 
 FORMAT = "manus-capture dataset"
@@ -281,35 +279,23 @@ class DatasetWriter:
         import h5py
 
         parts = sorted(self.parts.glob("*.h5")) if self.parts.is_dir() else []
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
-        os.close(fd)
         keys: list[str] = []
-        try:
-            with h5py.File(tmp, "w") as out:
-                _new_file_attrs(out)
-                new = {}
-                for part in parts:
-                    with h5py.File(part, "r") as f:
-                        new[str(f.attrs["key"])] = part
-                if self.existing and not self.force:
-                    with h5py.File(self.path, "r") as old:
-                        for key in self.existing:
-                            if key not in new:
-                                _copy(old, key, out, key)
-                                keys.append(key)
-                for key, part in new.items():
-                    with h5py.File(part, "r") as f:
-                        _copy(f, "take", out, key)
-                    keys.append(key)
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            os.chmod(tmp, 0o666 & ~_umask())
-            os.replace(tmp, self.path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_output(self.path) as tmp, h5py.File(tmp, "w") as out:
+            _new_file_attrs(out)
+            new = {}
+            for part in parts:
+                with h5py.File(part, "r") as f:
+                    new[str(f.attrs["key"])] = part
+            if self.existing and not self.force:
+                with h5py.File(self.path, "r") as old:
+                    for key in self.existing:
+                        if key not in new:
+                            _copy(old, key, out, key)
+                            keys.append(key)
+            for key, part in new.items():
+                with h5py.File(part, "r") as f:
+                    _copy(f, "take", out, key)
+                keys.append(key)
         if self.parts.is_dir():
             shutil.rmtree(self.parts)
         self.existing, self.force = sorted(keys), False
@@ -322,12 +308,6 @@ class DatasetWriter:
         # Only a clean exit writes the output; after an error the parts stay for the next run.
         if exc_type is None:
             self.finalize()
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _copy(src, src_name: str, dst, dst_key: str) -> None:

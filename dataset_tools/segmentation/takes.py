@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -13,6 +11,7 @@ import cv2
 import numpy as np
 
 from ..cameras import CameraRig
+from ..fileio import atomic_output
 from ..take import Take
 from .background import BackgroundModel, SegmentationError
 from .colour import PaintKey
@@ -112,10 +111,7 @@ def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
     import h5py
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_output(path) as tmp:
         if path.exists():
             shutil.copyfile(path, tmp)
         with h5py.File(tmp, "a") as f:
@@ -135,13 +131,6 @@ def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
             group.attrs["mask_cameras"] = result["cameras"]
             for k, v in attrs.items():
                 group.attrs[k] = v
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def write_overlays(folder: Path, take: Take, result: dict, t: int = 0) -> list[Path]:

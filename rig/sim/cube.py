@@ -19,7 +19,7 @@ from dataset_tools.cameras import CameraRig
 
 from ..cameras import CameraError, CameraInfo, Frame
 from ..clock import VirtualClock
-from ..config import CameraConfig, RigConfig, SimCameraConfig
+from ..config import CameraConfig, RigConfig
 from .clocks import CameraClock
 from .render import Rendered, Renderer
 from .world import World

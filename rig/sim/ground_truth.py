@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+from dataset_tools.fileio import atomic_output
 
 GZIP = {"compression": "gzip", "compression_opts": 4}
 
@@ -43,66 +43,57 @@ def write_ground_truth(cube, path, label_frames=None) -> Path:
     label_frames = default_label_frames(n_ticks) if label_frames is None else \
         np.asarray([f for f in label_frames if 0 <= f < n_ticks], np.int64)
     cams = cube.cameras
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs.update(kind=cube.kind, fps=cube.config.fps, sync=cube.config.sync, t0_ns=cube.t0_ns,
-                           subject=cube.config.sim.subject, object=cube.config.sim.object,
-                           paint=cube.config.sim.paint, seed=cube.config.sim.seed,
-                           tags_json=json.dumps(cube.world.tags_json()))
-            g = f.create_group("cameras")
-            g["ids"] = np.array(cams.ids, dtype=h5py.string_dtype())
-            for name in ("K", "dist", "R", "t", "size"):
-                g[name] = getattr(cams, name)
-            params = [c.sim for c in cube.camera_configs]
-            g = f.create_group("clock")
-            g["offset_ns"] = np.array([p.clock_offset_ms * 1e6 for p in params])
-            g["drift_ppm"] = np.array([p.drift_ppm for p in params])
-            g["phase_ns"] = np.array([p.phase_ms * 1e6 for p in params])
-            g["latency_ns"] = np.array([p.latency_ms * 1e6 for p in params])
-            g["trigger_latency_ns"] = np.array([p.trigger_latency_us * 1e3 for p in params])
-            g = f.create_group("frames")
-            g["tick_ns"] = ticks.round().astype(np.int64)
-            g["exposure_mid_ns"] = exposure
-            g["dropped"] = dropped
-            g["led_level"] = np.array([cube.lighting(int(t)) for t in ticks], np.float32)
-            seconds = cube.seconds(ticks)
-            if cube.hand is not None:
-                angles = cube.motion.hand_angles(seconds)
-                g = f.create_group("hand")
-                g["joint_angles"] = angles
-                g["joints3d"] = cube.hand.skeleton.forward(angles)
-                g["bone_lengths"] = cube.hand.skeleton.bone_lengths
-                g = f.create_group("contact")
-                g["points_rest"] = cube.hand.surface_rest
-                g["bone"] = cube.hand.surface_bone
-                if cube.kind == "grasp" and cube.object is not None:
-                    g.create_dataset("instant", data=cube.motion.contact_instant(seconds), **GZIP)
-                    g["accumulated"] = cube.motion.contact_accumulated()
-                elif cube.kind == "canonical":
-                    g["accumulated"] = cube.motion.state(0.0).paint
-            if cube.object is not None:
-                R, t = cube.motion.object_poses(seconds)
-                g = f.create_group("object")
-                g.attrs["name"] = cube.object.name
-                g["R"], g["t"] = R, t
-            g = f.create_group("labels")
-            g["frames"] = label_frames
-            h, w = int(cams.size[:, 1].max()), int(cams.size[:, 0].max())
-            # h5py cannot chunk an empty dataset: no labels asked for, a plain empty one
-            chunked = dict(chunks=(1, 1, h, w), **GZIP) if len(label_frames) else {}
-            images = g.create_dataset("image", shape=(len(cams), len(label_frames), h, w), dtype=np.uint8,
-                                      **chunked)
-            for c in range(len(cams)):
-                for j, frame in enumerate(label_frames):
-                    t = exposure[c, frame] if exposure[c, frame] >= 0 else ticks[frame]
-                    lab = cube.render(c, float(t), labels=True).labels
-                    images[c, j, :lab.shape[0], :lab.shape[1]] = lab
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs.update(kind=cube.kind, fps=cube.config.fps, sync=cube.config.sync, t0_ns=cube.t0_ns,
+                       subject=cube.config.sim.subject, object=cube.config.sim.object,
+                       paint=cube.config.sim.paint, seed=cube.config.sim.seed,
+                       tags_json=json.dumps(cube.world.tags_json()))
+        g = f.create_group("cameras")
+        g["ids"] = np.array(cams.ids, dtype=h5py.string_dtype())
+        for name in ("K", "dist", "R", "t", "size"):
+            g[name] = getattr(cams, name)
+        params = [c.sim for c in cube.camera_configs]
+        g = f.create_group("clock")
+        g["offset_ns"] = np.array([p.clock_offset_ms * 1e6 for p in params])
+        g["drift_ppm"] = np.array([p.drift_ppm for p in params])
+        g["phase_ns"] = np.array([p.phase_ms * 1e6 for p in params])
+        g["latency_ns"] = np.array([p.latency_ms * 1e6 for p in params])
+        g["trigger_latency_ns"] = np.array([p.trigger_latency_us * 1e3 for p in params])
+        g = f.create_group("frames")
+        g["tick_ns"] = ticks.round().astype(np.int64)
+        g["exposure_mid_ns"] = exposure
+        g["dropped"] = dropped
+        g["led_level"] = np.array([cube.lighting(int(t)) for t in ticks], np.float32)
+        seconds = cube.seconds(ticks)
+        if cube.hand is not None:
+            angles = cube.motion.hand_angles(seconds)
+            g = f.create_group("hand")
+            g["joint_angles"] = angles
+            g["joints3d"] = cube.hand.skeleton.forward(angles)
+            g["bone_lengths"] = cube.hand.skeleton.bone_lengths
+            g = f.create_group("contact")
+            g["points_rest"] = cube.hand.surface_rest
+            g["bone"] = cube.hand.surface_bone
+            if cube.kind == "grasp" and cube.object is not None:
+                g.create_dataset("instant", data=cube.motion.contact_instant(seconds), **GZIP)
+                g["accumulated"] = cube.motion.contact_accumulated()
+            elif cube.kind == "canonical":
+                g["accumulated"] = cube.motion.state(0.0).paint
+        if cube.object is not None:
+            R, t = cube.motion.object_poses(seconds)
+            g = f.create_group("object")
+            g.attrs["name"] = cube.object.name
+            g["R"], g["t"] = R, t
+        g = f.create_group("labels")
+        g["frames"] = label_frames
+        h, w = int(cams.size[:, 1].max()), int(cams.size[:, 0].max())
+        # h5py cannot chunk an empty dataset: no labels asked for, a plain empty one
+        chunked = dict(chunks=(1, 1, h, w), **GZIP) if len(label_frames) else {}
+        images = g.create_dataset("image", shape=(len(cams), len(label_frames), h, w), dtype=np.uint8,
+                                  **chunked)
+        for c in range(len(cams)):
+            for j, frame in enumerate(label_frames):
+                t = exposure[c, frame] if exposure[c, frame] >= 0 else ticks[frame]
+                lab = cube.render(c, float(t), labels=True).labels
+                images[c, j, :lab.shape[0], :lab.shape[1]] = lab
     return path

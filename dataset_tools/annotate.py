@@ -23,7 +23,6 @@ Every take records where its bones came from (attribute bone_source).
 from __future__ import annotations
 
 import hashlib
-import tomllib
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -363,20 +362,12 @@ def take_key(path: Path) -> str:
 
 
 def session_subject(session: Path) -> str | None:
-    """The subject named by SESSION/session.toml: `subject` in its [session] table (as the recorder
-    writes it), or at the top level; None when there is no file or no subject."""
-    path = session / "session.toml"
-    if not path.is_file():
-        return None
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise AnnotateError(f"{path}: not valid TOML ({exc})") from None
-    head = doc.get("session")
-    subject = head.get("subject") if isinstance(head, dict) else doc.get("subject")
-    if subject is not None and not isinstance(subject, str):
-        raise AnnotateError(f"{path}: subject: expected a string id, got {subject!r}")
-    return subject or None
+    """The subject named by SESSION/session.toml (read by the recorder's own reader, so a malformed
+    file gives its SessionError); None when there is no file or it names no subject."""
+    from rig.session import load_session  # the recorder owns the format; imported where it is used
+
+    found = load_session(session)
+    return (found.subject or None) if found is not None else None
 
 
 def _calibration(calib: Path) -> tuple[CameraRig, dict]:

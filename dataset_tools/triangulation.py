@@ -8,12 +8,12 @@ coordinate, marks a missing observation. Points that keep fewer than `min_views`
 back as NaN with NaN error: nothing is ever filled in.
 
 How (docs/triangulation.md has the details):
-1. Undistortion of every observation to normalized camera coordinates: OpenCV's fixed-point
-   iteration per camera, polished by Newton steps on the distortion model for all cameras at once;
-   an observation whose undistortion does not converge is dropped.
+1. Undistortion of every observation to normalized camera coordinates: a start from the series
+   that inverts the radial model, then Newton steps on the full distortion model; an observation
+   whose undistortion does not converge, or converges beyond the polynomial's first fold, is dropped.
 2. DLT: each view adds the rows w (x P3 - P1), w (y P3 - P2) with w = confidence and P = [R | t].
-   The 4x4 normal matrices of all points come from one matrix product over the cameras, and one
-   batched eigh gives every point's null vector.
+   The 4x4 normal matrices of a block of points come from one matrix product over the cameras;
+   their null vectors from a closed-form LDL' and inverse iteration (eigh where that does not settle).
 3. RANSAC over views (ransac=True): a hypothesis is the midpoint of the two viewing rays of a pair
    of views; the pairs are all pairs among the first views of a random view order per point (so a
    point with few views is searched exhaustively). Each hypothesis is scored against every view of
@@ -23,10 +23,12 @@ How (docs/triangulation.md has the details):
 4. The inliers' weighted DLT, then gating by the reprojection error in distorted pixels: the views
    farther than `threshold_px` from that solution are dropped and the point is solved again.
 5. error_px: RMS reprojection error (distorted pixels) over the views that were used.
+All elementwise stages run in blocks of points small enough for their temporaries to stay in cache.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -52,34 +54,51 @@ def _pair_table(count: int) -> np.ndarray:
 
 
 _FIRST_ROUND_PAIRS = 6  # all pairs among 4 views
-_POINT_CHUNK = 512  # points scored per block: bounds the (points, hypotheses, views) arrays
+_RANSAC_ELEMENTS = 1 << 16  # (points, hypotheses, views) scored per block
 
 
-def _normalized(rig: CameraRig, pixels: np.ndarray) -> np.ndarray:
-    """Distorted pixels (C,N,2) to distorted normalized coordinates (K^-1 applied, skew included)."""
-    fx, fy = rig.K[:, 0, 0, None], rig.K[:, 1, 1, None]
-    cx, cy, skew = rig.K[:, 0, 2, None], rig.K[:, 1, 2, None], rig.K[:, 0, 1, None]
-    y = (pixels[..., 1] - cy) / fy
-    x = (pixels[..., 0] - cx - skew * y) / fx
-    return np.stack([x, y], axis=-1)
+# Elements (cameras x points) per block of the elementwise stages. A block's temporaries then stay
+# in the CPU cache; whole-array temporaries of a large take are several times slower per element.
+_BLOCK_ELEMENTS = 1 << 14
 
 
-def _newton_step(dist, x: np.ndarray, y: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One Newton step of distort(x, y) = target for any shape of x and y; dist = (k1, k2, p1, p2, k3),
-    each broadcasting against x (per camera (C,1) or per observation (M,))."""
+def _point_blocks(n_cams: int, n_points: int) -> list[slice]:
+    """Slices of the point axis, each about _BLOCK_ELEMENTS observations."""
+    step = max(1, _BLOCK_ELEMENTS // max(n_cams, 1))
+    return [slice(s, min(s + step, n_points)) for s in range(0, n_points, step)]
+
+
+def _distortion_columns(rig: CameraRig) -> np.ndarray:
+    """(k1, k2, p1, p2, k3) as (5,C,1): broadcasts against (C,n) blocks."""
+    return rig.dist.T[:, :, None]
+
+
+def _newton_delta(dist, x: np.ndarray, y: np.ndarray, tx: np.ndarray, ty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Newton update (dx, dy), to subtract, of distort(x, y) = (tx, ty) for any shape of x and y;
+    dist = (k1, k2, p1, p2, k3), each broadcasting against x (per camera (C,1) or per observation (M,))."""
     k1, k2, p1, p2, k3 = dist
     xx, yy, xy_ = x * x, y * y, x * y
     r2 = xx + yy
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
-    fx_ = x * radial + 2 * p1 * xy_ + p2 * (r2 + 2 * xx) - target[..., 0]
-    fy_ = y * radial + p1 * (r2 + 2 * yy) + 2 * p2 * xy_ - target[..., 1]
-    jxx = radial + 2 * xx * d_radial + 2 * p1 * y + 6 * p2 * x
-    jyy = radial + 2 * yy * d_radial + 6 * p1 * y + 2 * p2 * x
-    jxy = 2 * xy_ * d_radial + 2 * p1 * x + 2 * p2 * y  # the Jacobian is symmetric
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_det = 1.0 / (jxx * jyy - jxy * jxy)
-    return x - (jyy * fx_ - jxy * fy_) * inv_det, y - (jxx * fy_ - jxy * fx_) * inv_det
+    d_radial = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))  # 2 d radial / d r2
+    fx = x * radial + 2 * p1 * xy_ + p2 * (r2 + 2 * xx) - tx
+    fy = y * radial + p1 * (r2 + 2 * yy) + 2 * p2 * xy_ - ty
+    jxx = radial + xx * d_radial + 2 * p1 * y + 6 * p2 * x
+    jyy = radial + yy * d_radial + 6 * p1 * y + 2 * p2 * x
+    jxy = xy_ * d_radial + 2 * p1 * x + 2 * p2 * y  # the Jacobian is symmetric
+    inv_det = 1.0 / (jxx * jyy - jxy * jxy)
+    return (jyy * fx - jxy * fy) * inv_det, (jxx * fy - jxy * fx) * inv_det
+
+
+def _invertible(dist, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Where the radial distortion r -> r radial(r^2) still increases at the undistorted point (x, y).
+
+    Beyond its first fold the polynomial maps several radii to one, and a root found there is not
+    the observation's ray.
+    """
+    k1, k2, _, _, k3 = dist
+    r2 = x * x + y * y
+    return 1 + r2 * (3 * k1 + r2 * (5 * k2 + 7 * k3 * r2)) > 0
 
 
 # A Newton step smaller than this (normalized units, ~1e-4 px) leaves an error of its square.
@@ -87,56 +106,95 @@ _NEWTON_TOL = 1e-7
 _NEWTON_STEPS = 8
 
 
+def _inverse_radial_series(rig: CameraRig) -> tuple[np.ndarray, np.ndarray]:
+    """Coefficients b (4,C,1) of the series r = r_d (1 + b1 s + b2 s^2 + b3 s^3 + b4 s^4), s = r_d^2,
+    that inverts the radial model r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6) (series reversion, as in
+    Drap and Lefevre 2016), and per camera the s (C,1) up to which it is a good start.
+
+    Truncated, the series drifts off far from the centre (for strong pincushion lenses already in
+    the image corners): beyond the radius where it is within 1e-3 of the true radius, or beyond
+    the first fold, the distorted point itself is the better start.
+    """
+    return _series_for(rig.dist.tobytes())
+
+
+@functools.lru_cache(maxsize=16)
+def _series_for(dist_bytes: bytes) -> tuple[np.ndarray, np.ndarray]:
+    # Cached on the coefficients: every block of every call with the same rig needs the same.
+    k1, k2, _, _, k3 = np.frombuffer(dist_bytes).reshape(-1, 5).T[:, :, None]
+    b = np.stack([-k1, 3 * k1 ** 2 - k2, -12 * k1 ** 3 + 8 * k1 * k2 - k3,
+                  55 * k1 ** 4 - 55 * k1 ** 2 * k2 + 5 * k2 ** 2 + 10 * k1 * k3])
+    r = np.linspace(0.0, 3.0, 301)
+    r2 = r * r
+    rd = r * (1 + r2 * (k1 + r2 * (k2 + r2 * k3)))  # (C,R)
+    s = rd * rd
+    start = rd * (1 + s * (b[0] + s * (b[1] + s * (b[2] + s * b[3]))))
+    good = (np.abs(start - r) <= 1e-3 * r) & (1 + r2 * (3 * k1 + r2 * (5 * k2 + 7 * k3 * r2)) > 0)
+    last = np.logical_and.accumulate(good, axis=1).sum(axis=1) - 1  # the first sample (r = 0) is good
+    return b, s[np.arange(len(s)), last][:, None]
+
+
+# When fewer than this share of a block's observations still move after a Newton step, the rest
+# get their further steps one by one instead of the whole block another step.
+_STRAGGLER_SHARE = 0.125
+
+
+def _undistort(rig: CameraRig, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distorted pixels px, py (C,n) to undistorted normalized coordinates x, y (C,n).
+
+    K^-1, the inverse series of the radial model as the start (within 1e-7 of the answer over
+    most of the image of a lens without tangential distortion; the distorted point itself where
+    the series is no good), then Newton steps on the full
+    model for the whole block while many observations still move, and for the few others one by
+    one. NaN in, NaN out; an observation that does not converge, or converges beyond the first fold
+    of the radial polynomial, is NaN.
+    """
+    dist = _distortion_columns(rig)
+    (b1, b2, b3, b4), series_s = _inverse_radial_series(rig)
+    K = rig.K
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        v = (py - K[:, 1, 2, None]) / K[:, 1, 1, None]
+        u = (px - K[:, 0, 2, None] - K[:, 0, 1, None] * v) / K[:, 0, 0, None]
+        s = u * u + v * v
+        scale = np.where(s <= series_s, 1 + s * (b1 + s * (b2 + s * (b3 + s * b4))), 1.0)
+        x, y = u * scale, v * scale
+        for _ in range(_NEWTON_STEPS):
+            dx, dy = _newton_delta(dist, x, y, u, v)
+            x -= dx
+            y -= dy
+            moved = np.maximum(np.abs(dx), np.abs(dy))
+            if np.count_nonzero(moved >= _NEWTON_TOL) <= _STRAGGLER_SHARE * moved.size:
+                break
+        cams, points = np.nonzero(moved >= _NEWTON_TOL)  # NaN compares False: missing stays missing
+        if len(cams):  # the few that need more steps, one row per observation
+            d = rig.dist[cams].T.copy()
+            xs, ys, us, vs = x[cams, points], y[cams, points], u[cams, points], v[cams, points]
+            active = np.arange(len(cams))
+            for _ in range(_NEWTON_STEPS):
+                dx, dy = _newton_delta(d[:, active], xs[active], ys[active], us[active], vs[active])
+                xs[active] -= dx
+                ys[active] -= dy
+                active = active[~(np.maximum(np.abs(dx), np.abs(dy)) < _NEWTON_TOL)]
+                if not len(active):
+                    break
+            xs[active] = ys[active] = np.nan
+            x[cams, points], y[cams, points] = xs, ys
+        bad = ~_invertible(dist, x, y)
+    x[bad] = y[bad] = np.nan
+    return x, y
+
+
 def undistort_points(rig: CameraRig, pixels: np.ndarray) -> np.ndarray:
     """Distorted pixels (C,N,2) to undistorted normalized coordinates (C,N,2).
 
-    NaN in, NaN out; an observation whose undistortion does not converge (outside the region where
-    the distortion model can be inverted) is NaN as well.
+    NaN in, NaN out; an observation whose undistortion does not converge, or converges beyond the
+    first fold of the distortion polynomial (far outside the image), is NaN as well.
     """
-    import cv2
-
     pixels = np.asarray(pixels, dtype=np.float64)
-    target = _normalized(rig, pixels)
     out = np.empty(pixels.shape)
-    eye = np.eye(3)
-    for c in range(len(rig)):  # one OpenCV call per camera, vectorized over its points (NaN stays NaN)
-        # On normalized input with an identity camera matrix OpenCV inverts the distortion only.
-        out[c] = cv2.undistortPoints(target[c].reshape(-1, 1, 2), eye, rig.dist[c]).reshape(-1, 2)
-    # OpenCV stops after 5 fixed-point iterations (up to 0.3 px off at the corners of a strong
-    # lens). Newton steps on the distortion model polish that to rounding error; observations that
-    # are still moving after a few steps have no inverse and are dropped.
-    x, y = _newton_step(rig.dist.T[:, :, None], out[..., 0], out[..., 1], target)
-    moved = np.maximum(np.abs(x - out[..., 0]), np.abs(y - out[..., 1]))
-    out[..., 0], out[..., 1] = x, y
-    cams, points = np.nonzero(moved >= _NEWTON_TOL)  # NaN compares False: missing stays missing
-    if len(cams):  # the few that need more steps, one row per observation
-        dist, goal = rig.dist[cams].T.copy(), target[cams, points]
-        x, y = out[cams, points, 0], out[cams, points, 1]
-        active = np.arange(len(cams))
-        for _ in range(_NEWTON_STEPS):
-            nx, ny = _newton_step(dist[:, active], x[active], y[active], goal[active])
-            moved = np.maximum(np.abs(nx - x[active]), np.abs(ny - y[active]))
-            x[active], y[active] = nx, ny
-            active = active[~(moved < _NEWTON_TOL)]
-            if not len(active):
-                break
-        x[active] = y[active] = np.nan
-        out[cams, points, 0], out[cams, points, 1] = x, y
+    for b in _point_blocks(*pixels.shape[:2]):
+        out[:, b, 0], out[:, b, 1] = _undistort(rig, pixels[:, b, 0], pixels[:, b, 1])
     return out
-
-
-def _project(rig: CameraRig, X: np.ndarray) -> np.ndarray:
-    """World points (N,3) to distorted pixels (C,N,2), NaN behind a camera: CameraRig.project with
-    the rotation as matrix products (einsum is several times slower on a million points)."""
-    Xt = X.T
-    xc, yc, zc = (rig.R[:, i, :] @ Xt + rig.t[:, i, None] for i in range(3))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = np.where(zc > 0, 1.0 / zc, np.nan)
-    xd = rig.distort(np.stack([xc * inv_z, yc * inv_z], axis=-1))
-    K = rig.K
-    u = K[:, 0, 0, None] * xd[..., 0] + K[:, 0, 1, None] * xd[..., 1] + K[:, 0, 2, None]
-    v = K[:, 1, 1, None] * xd[..., 1] + K[:, 1, 2, None]
-    return np.stack([u, v], axis=-1)
 
 
 def _world_normalization(rig: CameraRig) -> tuple[np.ndarray, float]:
@@ -156,48 +214,115 @@ def _normalized_projections(rig: CameraRig, center: np.ndarray, scale: float) ->
     return np.concatenate([rig.R * scale, (rig.R @ center + rig.t)[:, :, None]], axis=2)
 
 
+_UPPER = np.triu_indices(4)  # the 10 entries of a symmetric 4x4 matrix, row by row
+
+
 def _row_products(P: np.ndarray) -> np.ndarray:
-    """Per camera, the four 4x4 blocks whose combination is one view's normal matrix, (4,C,16).
+    """Per camera, the four symmetric 4x4 blocks whose combination is one view's normal matrix, as
+    the (10, 4C) matrix of their upper triangles (block k of camera c in column k C + c).
 
     For a view with weight w and point (x, y), the rows w (x p3 - p1) and w (y p3 - p2) give
     w^2 [(x^2 + y^2) p3p3' - x (p3p1' + p1p3') - y (p3p2' + p2p3') + p1p1' + p2p2'].
     """
     p1, p2, p3 = P[:, 0], P[:, 1], P[:, 2]
 
-    def outer(a, b):
-        return np.einsum("ci,cj->cij", a, b).reshape(len(P), 16)
+    def sym(a, b):  # upper triangle of a b' + b a'
+        o = a[:, :, None] * b[:, None, :]
+        return (o + o.transpose(0, 2, 1))[:, _UPPER[0], _UPPER[1]]
 
-    return np.stack([outer(p3, p3), -(outer(p3, p1) + outer(p1, p3)), -(outer(p3, p2) + outer(p2, p3)),
-                     outer(p1, p1) + outer(p2, p2)])
-
-
-def _normal_matrices(blocks: np.ndarray, xy: np.ndarray, w2: np.ndarray) -> np.ndarray:
-    """Normal matrices (N,4,4) of all points at once; xy (C,N,2), w2 (C,N) squared weights (0 = unused)."""
-    x = np.where(w2 > 0, xy[..., 0], 0.0)
-    y = np.where(w2 > 0, xy[..., 1], 0.0)
-    coef = np.stack([w2 * (x * x + y * y), w2 * x, w2 * y, w2])  # (4,C,N)
-    n_blocks, n_cams = blocks.shape[:2]
-    # (16, 4C) @ (4C, N) keeps both operands C-ordered: several times faster than (N, 4C) @ (4C, 16).
-    m = blocks.reshape(n_blocks * n_cams, 16).T @ coef.reshape(n_blocks * n_cams, -1)
-    return np.ascontiguousarray(m.T).reshape(-1, 4, 4)
+    blocks = np.stack([sym(p3, p3) / 2, -sym(p3, p1), -sym(p3, p2), (sym(p1, p1) + sym(p2, p2)) / 2])
+    return np.ascontiguousarray(blocks.reshape(-1, 10).T)
 
 
-def _solve_homogeneous(m: np.ndarray) -> np.ndarray:
-    """Null vectors of the normal matrices (N,4,4) -> inhomogeneous points (N,3); NaN at infinity."""
-    out = np.full((len(m), 3), np.nan)
-    ok = np.isfinite(m).all(axis=(1, 2))
-    if ok.any():
-        _, vectors = np.linalg.eigh(m[ok])
-        v = vectors[:, :, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            X = v[:, :3] / v[:, 3:]
-        out[ok] = np.where(np.abs(v[:, 3:]) > 1e-12, X, np.nan)
-    return out
+def _ldl(m: np.ndarray) -> np.ndarray:
+    """LDL' factors of symmetric 4x4 matrices given as upper triangles m (10,n), without pivoting:
+    (l10, l20, l30, l21, l31, l32, d3/d0, d3/d1, d3/d2) as (9,n).
+
+    The pivots come as ratios to the last one, d3, which is ~0 for a normal matrix of consistent
+    views: inverse iteration scaled by d3 then stays finite even for exact data (d3 = 0).
+    """
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33 = m
+    l10, l20, l30 = a01 / a00, a02 / a00, a03 / a00
+    d1 = a11 - l10 * a01
+    t21, t31 = a12 - l20 * a01, a13 - l30 * a01
+    l21, l31 = t21 / d1, t31 / d1
+    d2 = a22 - l20 * a02 - l21 * t21
+    t32 = a23 - l30 * a02 - l31 * t21
+    l32 = t32 / d2
+    d3 = a33 - l30 * a03 - l31 * t31 - l32 * t32
+    return np.stack([l10, l20, l30, l21, l31, l32, d3 / a00, d3 / d1, d3 / d2])
 
 
-def _rays(rig: CameraRig, xy: np.ndarray) -> np.ndarray:
-    """World directions (C,N,3) of the viewing rays through undistorted normalized points (C,N,2)."""
-    xyh = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)
+def _inverse_step(F: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """One step of inverse iteration, w <- d3 M^-1 w normalized, with M = L D L' given by F (9,n)."""
+    l10, l20, l30, l21, l31, l32, r0, r1, r2 = F
+    z0 = w[0]
+    z1 = w[1] - l10 * z0
+    z2 = w[2] - l20 * z0 - l21 * z1
+    z3 = w[3] - l30 * z0 - l31 * z1 - l32 * z2
+    z0, z1, z2 = z0 * r0, z1 * r1, z2 * r2
+    v2 = z2 - l32 * z3
+    v1 = z1 - l21 * v2 - l31 * z3
+    v0 = z0 - l10 * v1 - l20 * v2 - l30 * z3
+    v = np.stack([v0, v1, v2, z3])
+    return v / np.sqrt((v * v).sum(axis=0))
+
+
+# Inverse iteration stops when a step turns the vector by less than this: the error left is about
+# this times lambda_1 / lambda_2 (~1e-5), below rounding. Points still turning after _INVERSE_STEPS
+# have views that disagree (outliers without RANSAC): eigh solves those.
+_INVERSE_TOL = 1e-9
+_INVERSE_STEPS = 4
+
+
+def _null_points(m: np.ndarray) -> np.ndarray:
+    """Points (n,3) from the null vectors (eigenvectors of the smallest eigenvalue, what an SVD of
+    the DLT rows gives) of symmetric 4x4 normal matrices given as upper triangles m (10,n); NaN at
+    infinity or where the views do not fix a point.
+
+    Closed form and elementwise over n, several times faster than a batched np.linalg.eigh: inverse
+    iteration from e4 on an LDL' factorization. Its first step is the inhomogeneous solution (X, 1);
+    each further step shrinks the remaining error by lambda_1 / lambda_2, which is ~1e-5 for
+    consistent views, so two or three steps reach rounding error.
+    """
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        F = _ldl(m)
+        w = np.zeros((4, m.shape[1]))
+        w[3] = 1.0
+        w = _inverse_step(F, w)
+        active = np.arange(m.shape[1])
+        for _ in range(_INVERSE_STEPS):
+            prev = w[:, active]
+            step = _inverse_step(F[:, active], prev)
+            # The sign of a null vector is free (and d3 may be slightly negative): compare both.
+            turned = np.abs(step - prev * np.sign((step * prev).sum(axis=0))).max(axis=0)
+            w[:, active] = step
+            active = active[turned > _INVERSE_TOL]  # NaN leaves the loop too
+            if not len(active):
+                break
+        if len(active):
+            M = np.empty((len(active), 4, 4))
+            M[:, _UPPER[0], _UPPER[1]] = M[:, _UPPER[1], _UPPER[0]] = m[:, active].T
+            w[:, active] = np.linalg.eigh(M)[1][:, :, 0].T
+        points = (w[:3] / w[3]).T
+    points[~(np.abs(w[3]) > 1e-12)] = np.nan  # at infinity, or NaN
+    return points
+
+
+def _dlt(blocks: np.ndarray, x: np.ndarray, y: np.ndarray, w2: np.ndarray) -> np.ndarray:
+    """Weighted DLT of n points, in normalized world coordinates (n,3); x, y (C,n) undistorted
+    normalized coordinates (finite, 0 where unused), w2 (C,n) squared weights (0 = unused).
+
+    The normal matrices are one product (10, 4C) @ (4C, n) of the per-camera blocks and the
+    per-view coefficients w^2 (x^2 + y^2), w^2 x, w^2 y, w^2.
+    """
+    wx, wy = w2 * x, w2 * y
+    return _null_points(blocks @ np.concatenate([wx * x + wy * y, wx, wy, w2]))
+
+
+def _rays(rig: CameraRig, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """World directions (C,N,3) of the viewing rays through undistorted normalized points x, y (C,N)."""
+    xyh = np.stack([x, y, np.ones_like(x)], axis=2)
     return np.matmul(xyh, rig.R)  # R' (x, y, 1) for every point: row vector times R
 
 
@@ -221,32 +346,53 @@ def _midpoints(origins: np.ndarray, rays: np.ndarray, views: np.ndarray, points:
     return 0.5 * (o1 + s[..., None] * d1 + o2 + t[..., None] * d2)
 
 
-def _hypothesis_errors(rig: CameraRig, X: np.ndarray, x_obs: np.ndarray, y_obs: np.ndarray) -> np.ndarray:
-    """Squared reprojection errors (n,K,C) of hypotheses X (n,K,3) against observations (n,C), in
-    approximate pixels; NaN where the observation is missing or the point is behind the camera.
+def _focal_projections(rig: CameraRig) -> tuple[np.ndarray, np.ndarray]:
+    """The rows fx r1, fy r2, r3 of every camera as a (3, 3C) matrix (columns i C + c) and the
+    matching (3C,) translations: one product gives the camera coordinates, scaled to pixels, of
+    points in all cameras."""
+    f = np.stack([rig.K[:, 0, 0], rig.K[:, 1, 1], np.ones(len(rig))])  # (3,C)
+    rows = rig.R.transpose(1, 0, 2) * f[:, :, None]  # (3,C,3)
+    return np.ascontiguousarray(rows.reshape(-1, 3).T), (rig.t.T * f).ravel()
 
-    Measured between undistorted normalized coordinates scaled by the focal lengths, so no
-    distortion model is evaluated per hypothesis.
+
+def _hypothesis_errors(projection: tuple[np.ndarray, np.ndarray], X: np.ndarray, u_obs: np.ndarray,
+                       v_obs: np.ndarray) -> np.ndarray:
+    """Squared reprojection errors (n,K,C) of hypotheses X (n,K,3) against observations (n,C) given
+    as undistorted normalized coordinates times the focal lengths; approximate pixels, NaN where
+    the observation is missing or the point is behind the camera.
+
+    No distortion model is evaluated per hypothesis: the observations were undistorted once.
     """
     n, k = X.shape[:2]
-    flat = X.reshape(-1, 3)
-    xc, yc, zc = ((flat @ rig.R[:, i, :].T + rig.t[:, i]).reshape(n, k, -1) for i in range(3))
+    rows, t = projection
+    n_cams = len(t) // 3
+    Y = X.reshape(-1, 3) @ rows
+    Y += t
+    Y = Y.reshape(n, k, 3, n_cams)
     with np.errstate(divide="ignore", invalid="ignore"):
+        zc = Y[:, :, 2]
         inv_z = np.where(zc > 0, 1.0 / zc, np.nan)
-    ex = (xc * inv_z - x_obs[:, None]) * rig.K[:, 0, 0]
-    ey = (yc * inv_z - y_obs[:, None]) * rig.K[:, 1, 1]
-    return ex * ex + ey * ey
+        ex = Y[:, :, 0] * inv_z
+        ex -= u_obs[:, None]
+        ey = Y[:, :, 1] * inv_z
+        ey -= v_obs[:, None]
+        ex *= ex
+        ey *= ey
+        ex += ey
+    return ex
 
 
-def _ransac_inliers(rig: CameraRig, xy: np.ndarray, usable: np.ndarray, threshold_px: float, iterations: int,
-                    rng: np.random.Generator) -> np.ndarray:
+def _ransac_inliers(rig: CameraRig, x: np.ndarray, y: np.ndarray, usable: np.ndarray, threshold_px: float,
+                    iterations: int, rng: np.random.Generator) -> np.ndarray:
     """Inlier views (C,N) of each point's best two-view hypothesis (MSAC score over all its views)."""
     n_cams, n_points = usable.shape
     threshold2 = threshold_px ** 2
     n_views = usable.sum(axis=0)
-    rays = _rays(rig, xy)
+    rays = _rays(rig, x, y)
     origins = rig.centers
-    x_obs, y_obs = np.ascontiguousarray(xy[..., 0].T), np.ascontiguousarray(xy[..., 1].T)  # (N,C)
+    projection = _focal_projections(rig)
+    u_obs = np.ascontiguousarray((x * rig.K[:, 0, 0, None]).T)  # (N,C), NaN where missing
+    v_obs = np.ascontiguousarray((y * rig.K[:, 1, 1, None]).T)
     # A random view order per point, usable views first.
     order = np.argsort(rng.random((n_points, n_cams)) + (~usable.T) * 2.0, axis=1)
     pairs = _pair_table(max(iterations, 1))
@@ -255,11 +401,12 @@ def _ransac_inliers(rig: CameraRig, xy: np.ndarray, usable: np.ndarray, threshol
     best_cost = np.full(n_points, np.inf)
 
     def run(points: np.ndarray, pair_rows: np.ndarray) -> None:
-        for start in range(0, len(points), _POINT_CHUNK):
-            idx = points[start:start + _POINT_CHUNK]
+        chunk = max(1, _RANSAC_ELEMENTS // max(1, len(pair_rows) * n_cams))
+        for start in range(0, len(points), chunk):
+            idx = points[start:start + chunk]
             views = order[idx][:, pair_rows]  # (n,K,2)
             X = _midpoints(origins, rays, views, idx)
-            e2 = _hypothesis_errors(rig, X, x_obs[idx], y_obs[idx])
+            e2 = _hypothesis_errors(projection, X, u_obs[idx], v_obs[idx])
             # MSAC: a view costs its squared error, capped at the threshold; missing views and
             # views behind the camera (NaN) cost the cap, the same for every hypothesis of a point.
             cost = np.fmin(e2, threshold2).sum(axis=2)
@@ -284,11 +431,18 @@ def _ransac_inliers(rig: CameraRig, xy: np.ndarray, usable: np.ndarray, threshol
     return inliers.T
 
 
-def _reprojection_errors(rig: CameraRig, X: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """Pixel distance (C,N) between projections of X (N,3) and observations; NaN behind a camera."""
-    d = _project(rig, X)
-    d -= pixels
-    return np.hypot(d[..., 0], d[..., 1])
+def _reprojection_errors(rig: CameraRig, X: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+    """Pixel distance (C,n) between the projections of X (n,3) and observations px, py (C,n);
+    NaN behind a camera."""
+    R, t, K = rig.R, rig.t, rig.K
+    Xt = X.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xc, yc, zc = (R[:, i, :] @ Xt + t[:, i, None] for i in range(3))
+        inv_z = np.where(zc > 0, 1.0 / zc, np.nan)
+        xd = rig.distort(np.stack([xc * inv_z, yc * inv_z], axis=-1))
+        du = K[:, 0, 0, None] * xd[..., 0] + K[:, 0, 1, None] * xd[..., 1] + K[:, 0, 2, None] - px
+        dv = K[:, 1, 1, None] * xd[..., 1] + K[:, 1, 2, None] - py
+        return np.sqrt(du * du + dv * dv)
 
 
 def _check_inputs(rig: CameraRig, points2d, camera_ids: Sequence[str] | None) -> tuple[CameraRig, np.ndarray]:
@@ -341,53 +495,77 @@ def triangulate(rig: CameraRig, points2d: np.ndarray, ransac: bool = True, *, th
         raise TriangulationError(f"triangulate: min_views = {min_views}, at least 2 views are needed")
     if not threshold_px > 0:
         raise TriangulationError(f"triangulate: threshold_px = {threshold_px!r} must be > 0")
-    pixels, conf = pts[..., :2], pts[..., 2]
-    with np.errstate(invalid="ignore"):
-        # x + y is finite exactly when both are (inf - inf is NaN).
-        usable = np.isfinite(pixels[..., 0] + pixels[..., 1]) & (conf > 0)
-    pixels = np.where(usable[..., None], pixels, np.nan)
-    xy = undistort_points(rig, pixels)
-    usable &= ~np.isnan(xy[..., 0])
-
+    n_cams, n_points = pts.shape[:2]
     center, scale = _world_normalization(rig)
     blocks = _row_products(_normalized_projections(rig, center, scale))
-    weights2 = np.where(usable, conf, 0.0) ** 2
-
-    def solve(views: np.ndarray, idx=slice(None)) -> tuple[np.ndarray, np.ndarray]:
-        """Weighted DLT of points idx from their views (C,n); returns X (n,3) and errors (C,n)."""
-        m = _normal_matrices(blocks, xy[:, idx], np.where(views, weights2[:, idx], 0.0))
-        X = _solve_homogeneous(m) * scale + center
-        return X, _reprojection_errors(rig, X, pixels[:, idx])
-
+    # The elementwise stages go block by block, so that the temporaries of a large take stay in
+    # the CPU cache; RANSAC takes all points at once (it blocks its own arrays), so that the points
+    # that need a second round are one batch.
+    spans = _point_blocks(n_cams, n_points)
+    px, py, x, y = (np.empty((n_cams, n_points)) for _ in range(4))
+    usable = np.empty((n_cams, n_points), dtype=bool)
+    for b in spans:
+        px[:, b], py[:, b], x[:, b], y[:, b], usable[:, b] = _observations(rig, pts[:, b])
     if ransac:
-        used = _ransac_inliers(rig, xy, usable, threshold_px, iterations, np.random.default_rng(seed))
-        X, errors = solve(used)
-        # Gating: keep the views within the threshold of the inliers' solution (distorted pixels
-        # now, exactly), and solve again the points whose views changed.
-        with np.errstate(invalid="ignore"):
-            gated = usable & (errors < threshold_px)
-        changed = np.flatnonzero((gated != used).any(axis=0))
-        used = gated
-        if len(changed):
-            X[changed], errors[:, changed] = solve(used[:, changed], changed)
+        used = _ransac_inliers(rig, x, y, usable, threshold_px, iterations, np.random.default_rng(seed))
     else:
-        used = usable
-        X, errors = solve(used)
+        used = usable.copy()
+    X, error_px = np.empty((n_points, 3)), np.empty(n_points)
+    for b in spans:
+        X[b], error_px[b], used[:, b] = _solve_block(
+            rig, blocks, center, scale, px[:, b], py[:, b], x[:, b], y[:, b], pts[:, b, 2], usable[:, b],
+            used[:, b], threshold_px if ransac else None)
     n_used = used.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sq = np.square(errors, out=errors)
-        sq[~used] = 0.0
-        error_px = np.sqrt(sq.sum(axis=0) / n_used)
     # A NaN error means a used view lies behind its camera: such a solution is no point at all.
     bad = (n_used < min_views) | ~np.isfinite(error_px) | ~np.isfinite(X).all(axis=1)
     if max_error_px is not None:
         bad |= error_px > max_error_px
     X[bad] = np.nan
     error_px[bad] = np.nan
-    used = used & ~bad
+    used &= ~bad
     if return_inliers:
         return X, error_px, used
     return X, error_px
+
+
+def _observations(rig: CameraRig, pts: np.ndarray) -> tuple[np.ndarray, ...]:
+    """pts (C,n,3) -> pixels px, py, undistorted normalized x, y (NaN where missing) and the mask of
+    usable observations, each (C,n)."""
+    px, py, conf = pts[..., 0], pts[..., 1], pts[..., 2]
+    with np.errstate(invalid="ignore"):
+        # x + y is finite exactly when both are (inf - inf is NaN).
+        usable = np.isfinite(px + py) & (conf > 0)
+    px, py = np.where(usable, px, np.nan), np.where(usable, py, np.nan)
+    x, y = _undistort(rig, px, py)
+    return px, py, x, y, usable & ~np.isnan(x)
+
+
+def _solve_block(rig: CameraRig, blocks: np.ndarray, center: np.ndarray, scale: float, px: np.ndarray,
+                 py: np.ndarray, x: np.ndarray, y: np.ndarray, conf: np.ndarray, usable: np.ndarray,
+                 views: np.ndarray, gate_px: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The weighted DLT of one block of points from `views` (C,n), then (gate_px given) gating:
+    the usable views within gate_px of that solution are kept and the points whose views changed
+    are solved again. Returns points (n,3), RMS error (n,) and the views used (C,n)."""
+    weights2 = np.where(usable, conf, 0.0) ** 2
+    x0, y0 = np.where(usable, x, 0.0), np.where(usable, y, 0.0)  # the DLT's unused views weigh 0
+
+    def solve(views: np.ndarray, idx=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        X = _dlt(blocks, x0[:, idx], y0[:, idx], np.where(views, weights2[:, idx], 0.0)) * scale + center
+        return X, _reprojection_errors(rig, X, px[:, idx], py[:, idx])
+
+    X, errors = solve(views)
+    if gate_px is not None:
+        # Distorted pixels now, exactly (RANSAC scored in undistorted coordinates).
+        with np.errstate(invalid="ignore"):
+            gated = usable & (errors < gate_px)
+        changed = np.flatnonzero((gated != views).any(axis=0))
+        views = gated
+        if len(changed):
+            X[changed], errors[:, changed] = solve(views[:, changed], changed)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sq = np.where(views, errors * errors, 0.0)
+        error_px = np.sqrt(sq.sum(axis=0) / views.sum(axis=0))
+    return X, error_px, views
 
 
 def triangulate_frames(rig: CameraRig, keypoints2d: np.ndarray, ransac: bool = True, **kwargs):

@@ -24,6 +24,7 @@ from dataset_tools.take import Take
 from dataset_tools.triangulation import triangulate_frames
 from manus_capture.cli import cli
 from rig.layouts import make_rig
+from rig.session import SessionError, open_session
 from rig.sim.cube import true_cameras
 from rig.sim.hand import make_hand
 from rig.sim.motion import make_motion
@@ -111,11 +112,11 @@ def write_sim_take(folder: Path, rig, hand, motion, fps: float, n_frames: int, k
 def session(tmp_path_factory):
     """A session of subject s03 (a hand take and a grasp take) on 12 cameras, and its calibration."""
     root = tmp_path_factory.mktemp("annotate")
-    rig = true_cameras(make_rig("cube53", cameras=12, resolution=(640, 360)))
+    config = make_rig("cube53", cameras=12, resolution=(640, 360))
+    rig = true_cameras(config)
     rig.save(root / "calib" / "cameras.json")
     hand = make_hand("s03")
-    (root / "S1").mkdir()
-    (root / "S1" / "session.toml").write_text('[session]\nsubject = "s03"\noperator = "test"\n')
+    open_session(root / "S1", config, subject="s03", operator="test")  # session.toml as the recorder writes it
     write_sim_take(root / "S1" / "hand_01", rig, hand, make_motion("hand", hand, None, 3.0), 20.0, 60, "hand")
     joints = write_sim_take(root / "S1" / "grasp_01", rig, hand, make_motion("grasp", hand, make_object("box"), 1.0),
                             60.0, 60, "grasp", seed=1, drop=((0, 5), (3, 9)))
@@ -264,7 +265,8 @@ def test_host_time_grouping_puts_each_tick_in_one_group(tmp_path):
     np.testing.assert_allclose(np.diff(frame_ns), period, atol=1)
 
 
-def test_bad_input_gives_clear_errors_or_marked_frames(session, tmp_path):
+def test_bad_input_gives_clear_errors_or_marked_frames(session, inline_result, tmp_path):
+    # inline_result: the run that writes S1/subjects/s03.json, which --bones below reads
     root, rig = session["root"], session["rig"]
     with pytest.raises(AnnotateError, match="no such calibration"):
         annotate(session["takes"], tmp_path / "nowhere", tmp_path / "D.h5")
@@ -307,6 +309,12 @@ def test_bad_input_gives_clear_errors_or_marked_frames(session, tmp_path):
     result = CliRunner().invoke(cli, ["annotate", str(empty), "--calib", str(tmp_path / "nowhere"), "-o",
                                       str(tmp_path / "F.h5")])
     assert result.exit_code == 2 and "no such calibration" in result.output
+
+    # A session.toml that is not one: the recorder's reader names the file, nothing is written.
+    (tmp_path / "S9" / "session.toml").write_text("[session\nsubject = 's03'\n")
+    with pytest.raises(SessionError, match=re.escape(f"{tmp_path / 'S9' / 'session.toml'}: not valid TOML")):
+        annotate([empty], root / "calib", tmp_path / "G.h5")
+    assert not (tmp_path / "G.h5").exists()
 
 
 def test_cli_annotate_then_stats(session, tmp_path):

@@ -10,9 +10,14 @@ import pytest
 
 from dataset_tools.segmentation import (BackgroundModel, PaintKey, SegmentationError, dominant_colour_key,
                                         fill_holes, hand_object_masks, object_colour, paint_key_from_object,
-                                        paint_masks, remove_small)
+                                        paint_masks, refine_edges, remove_small)
 
-W, H, N = 320, 180, 6
+# The issue's targets hold "at a test resolution": at 640x360 a finger is ~8 px wide and a paint
+# spot ~10 px across (at 320x180 the edges, a few px wide, are a third of the masks)
+W, H, N = 640, 360, 6
+# A view shows paint when the truth has at least this many paint pixels (views with a sliver of
+# a pixel or two at a grazing angle have no paint to score)
+PAINT_VISIBLE_PX = 20
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -27,9 +32,14 @@ def sim():
     config = make_rig("cube53", cameras=N, resolution=(W, H))
     config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, paint=True, object="mug"))
 
+    static: dict = {}
+
     def frames(kind, seconds, light=1.0):
         # as SimCamera._encode: gaussian noise and JPEG
         cube = SimulatedCube(config, kind, 2.0)
+        # the walls and table look the same in every kind of take: their render (the renderer's
+        # cache, most of the fixture's time) is shared
+        cube.renderer._background = static
         images, labels = [], []
         for s in seconds:
             rendered = [cube.render(c, cube.t0_ns + s * 1e9, labels=True) for c in range(N)]
@@ -60,29 +70,36 @@ def _grasp_ious(sim) -> tuple[float, float]:
 
 def test_grasp_masks_against_truth(sim):
     hand, obj = _grasp_ious(sim)
-    # measured 0.87 / 0.93 at 320x180: below the issue's 0.95 (see the xfail below)
-    assert hand >= 0.85 and obj >= 0.9, (hand, obj)
+    # the issue's target; measured 0.962 / 0.972 (pooled over the views)
+    assert hand >= 0.95 and obj >= 0.95, (hand, obj)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 7 target (IoU >= 0.95) not reached yet: finger tips over the "
-                                       "skin-coloured table are missed")
-def test_grasp_masks_issue_target(sim):
-    hand, obj = _grasp_ious(sim)
-    assert hand >= 0.95 and obj >= 0.95
-
-
-def test_paint_masks_against_truth(sim):
+@pytest.fixture(scope="module")
+def paint_ious(sim) -> tuple[float, list[float]]:
     key = paint_key_from_object(sim["object"], sim["backgrounds"])
     hand, _, _ = hand_object_masks(sim["canon"], sim["backgrounds"], sim["rig"])
     truth = sim["canon_labels"]
-    assert iou(hand, (truth == 1) | (truth == 3)) >= 0.9
-    paint, report = paint_masks(sim["canon"], hand, key)
+    lit = [b.at_brightness(image) for b, image in zip(sim["backgrounds"], sim["canon"])]
+    paint, report = paint_masks(sim["canon"], hand, key, backgrounds=lit)
     assert not report["warnings"]
-    seen = [c for c in range(N) if (truth[c] == 3).sum() >= 50]
-    assert seen
-    scores = [iou(paint[c], truth[c] == 3) for c in seen]
-    # measured 0.43-0.77 per view at 320x180; the issue asks 0.9 (not reached)
-    assert min(scores) >= 0.35, scores
+    seen = [c for c in range(N) if (truth[c] == 3).sum() >= PAINT_VISIBLE_PX]
+    assert len(seen) >= 3
+    return iou(hand, (truth == 1) | (truth == 3)), [iou(paint[c], truth[c] == 3) for c in seen]
+
+
+def test_paint_masks_against_truth(paint_ious):
+    hand, scores = paint_ious
+    assert hand >= 0.95, hand   # measured 0.970
+    # measured 0.75-0.90 per view: JPEG keeps colour at half resolution, and paint differs from skin
+    # mostly in colour, so a paint spot's edge pixels are decided on smeared colour
+    assert min(scores) >= 0.7, scores
+
+
+@pytest.mark.xfail(strict=True, reason="issue 7 target (paint IoU >= 0.9 in every view) not reached at 640x360: "
+                                       "measured 0.75-0.90 (the edge pixels of spots ~10 px across)")
+def test_paint_masks_issue_target(paint_ious):
+    _, scores = paint_ious
+    assert min(scores) >= 0.9, scores
 
 
 def test_paint_colour_not_found_warns(sim):
@@ -106,6 +123,26 @@ def test_bad_input(sim):
     bgs[1] = None
     hand, _, report = hand_object_masks(sim["canon"], bgs, sim["rig"])
     assert not hand[1].any() and hand[0].any()
+
+
+def test_refine_edges_unmixes_edge_pixels():
+    """Edge pixels that are 70 % foreground go to it, 30 % ones to the background, whichever way
+    the first labels erred; between two classes likewise."""
+    bg, skin, green = np.array([200, 60, 40.0]), np.array([120, 150, 200.0]), np.array([40, 170, 50.0])
+    image = np.tile(bg, (12, 20, 1))
+    image[:, 3] = 0.3 * skin + 0.7 * bg       # mostly background
+    image[:, 4:9] = skin
+    image[:, 9] = 0.6 * green + 0.4 * skin    # mostly green
+    image[:, 10:15] = green
+    image[:, 15] = 0.7 * green + 0.3 * bg     # mostly green
+    truth = np.zeros((12, 20), np.uint8)
+    truth[:, 4:9] = 1
+    truth[:, 9:16] = 2
+    first = np.zeros_like(truth)
+    first[:, 3:10] = 1                         # one column too many on the left, the mixed one named skin
+    first[:, 10:15] = 2                        # one column too few on the right
+    refined = refine_edges(image.astype(np.float32), first, np.tile(bg, (12, 20, 1)), (1, 2))
+    assert np.array_equal(refined, truth)
 
 
 def test_fill_and_remove():

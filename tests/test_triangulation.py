@@ -141,6 +141,14 @@ def test_undistortion_inverts_the_distortion_model():
     xy = rng.uniform([-0.7, -0.4], [0.7, 0.4], (2, 5000, 2))
     pixels = rig.distort(xy) @ rig.K[0, :2, :2].T + rig.K[0, :2, 2]
     np.testing.assert_allclose(undistort_points(rig, pixels), xy, atol=1e-12)
+    # A strong pincushion lens, every pixel of the image: the inverse series that starts the Newton
+    # steps is far off in the corners here, where the distorted point is the start instead.
+    lens = CameraRig(("p",), rig.K[:1], [[0.9, -1.5, 0.001, 0.0005, 2.0]], np.eye(3)[None], np.zeros((1, 3)),
+                     [[1280, 720]])
+    pixels = np.stack(np.meshgrid(np.arange(0, 1280, 4.0), np.arange(0, 720, 4.0)), axis=-1).reshape(1, -1, 2)
+    back = undistort_points(lens, pixels)
+    assert np.isfinite(back).all()
+    np.testing.assert_allclose(lens.distort(back) @ lens.K[0, :2, :2].T + lens.K[0, :2, 2], pixels, atol=1e-9)
     # Far outside the image the barrel model folds over and has no inverse: NaN, not a guess.
     far = undistort_points(rig, np.array([[[40000.0, 30000.0]], [[np.nan, 1.0]]]))
     assert np.isnan(far).all()
@@ -171,6 +179,12 @@ def test_missing_views_are_never_filled_in():
     # All missing: every point NaN, no error.
     Y, error_px = triangulate(rig, np.full((len(rig), 7, 3), np.nan))
     assert np.isnan(Y).all() and np.isnan(error_px).all()
+    # One camera, and no points at all.
+    for ransac in (False, True):
+        Y, error_px = triangulate(rig.subset(["c0"]), pts[:1], ransac=ransac)
+        assert np.isnan(Y).all() and np.isnan(error_px).all()
+    Y, error_px = triangulate(rig, pts[:, :0])
+    assert Y.shape == (0, 3) and error_px.shape == (0,)
 
 
 def test_a_point_behind_the_cameras_is_rejected():

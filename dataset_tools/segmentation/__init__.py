@@ -2,6 +2,7 @@
 
 from .background import BackgroundModel, SegmentationError, fill_holes, remove_small
 from .colour import ColourModel, PaintKey, chromaticity, dominant_colour_key
+from .edges import refine_edges
 from .multiview import Occupancy, carve, consistent_masks, project_occupancy
 from .paint import contact_votes, paint_masks
 from .pngs import load_png_masks
@@ -10,4 +11,4 @@ from .views import foreground_masks, hand_object_masks, object_colour, paint_key
 __all__ = ["BackgroundModel", "SegmentationError", "fill_holes", "remove_small", "ColourModel", "PaintKey",
            "chromaticity", "dominant_colour_key", "Occupancy", "carve", "consistent_masks", "project_occupancy",
            "contact_votes", "paint_masks", "load_png_masks", "foreground_masks", "hand_object_masks",
-           "object_colour", "paint_key_from_object"]
+           "object_colour", "paint_key_from_object", "refine_edges"]

@@ -57,6 +57,10 @@ class BackgroundModel:
     def shape(self) -> tuple[int, int]:
         return self.median.shape[:2]
 
+    def at_brightness(self, image: np.ndarray) -> np.ndarray:
+        """The background's colours (H,W,3) float32 at the brightness (LED level) of `image`."""
+        return self.median * np.float32(estimate_gain(np.asarray(image, np.float32), self.median))
+
     def difference(self, image: np.ndarray) -> np.ndarray:
         """Per-pixel colour difference (H,W) to the background in noise sigmas, after the gain."""
         image = np.asarray(image, np.float32)

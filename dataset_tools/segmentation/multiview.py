@@ -29,10 +29,12 @@ class Occupancy:
 
 
 def default_bounds(rig: CameraRig, margin: float = 0.1) -> np.ndarray:
-    """The box (2,3) inside the cameras' centres (the cube), shrunk by `margin` of its size."""
-    lo, hi = rig.centers.min(axis=0), rig.centers.max(axis=0)
-    pad = (hi - lo) * margin
-    return np.stack([lo + pad, hi - pad])
+    """The box (2,3) of the cube, shrunk by `margin` of its size: the world's origin is the cube's
+    centre (the tag layout fixes it), and the cameras sit on its walls, so the cube reaches as far
+    from the origin on each axis as the farthest camera. (The box of the camera centres alone
+    would cut off the table when no camera looks up from below it.)"""
+    half = np.abs(rig.centers).max(axis=0) * (1 - margin)
+    return np.stack([-half, half])
 
 
 def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, points: np.ndarray,

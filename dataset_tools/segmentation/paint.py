@@ -2,19 +2,27 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 
 from ..cameras import CameraRig
 from .background import SegmentationError, remove_small
 from .colour import PaintKey, chromaticity
+from .edges import refine_edges
 
 
-def paint_masks(images: np.ndarray, hand_masks: np.ndarray, key: PaintKey, min_area: int = 3) -> tuple[np.ndarray, dict]:
+def paint_masks(images: np.ndarray, hand_masks: np.ndarray, key: PaintKey, min_area: int = 3,
+                backgrounds: Sequence[np.ndarray | None] | None = None) -> tuple[np.ndarray, dict]:
     """Paint masks (C,H,W) inside the hand masks of views (C,H,W,3), and a report.
 
     The skin colour to unmix against is the hand's own (its pixels far from the paint colour),
-    so it follows the subject and the lights. `report["warnings"]` says when no paint is seen."""
+    so it follows the subject and the lights. The edges of the paint are then unmixed pixel by
+    pixel (edges.refine_edges) against the skin and, given `backgrounds` ((H,W,3) per view at the
+    images' brightness, None for a view without one), against the background: paint seen edge-on along a
+    finger's silhouette is a sliver mixed with the wall behind it. `report["warnings"]` says when
+    no paint is seen."""
     images = np.asarray(images, np.float32)
     hand_masks = np.asarray(hand_masks, bool)
     chroma = chromaticity(images)
@@ -26,7 +34,11 @@ def paint_masks(images: np.ndarray, hand_masks: np.ndarray, key: PaintKey, min_a
     out = np.zeros(hand_masks.shape, bool)
     for c in range(len(images)):
         if hand_masks[c].any():
-            out[c] = remove_small(key.mask(images[c], base, hand_masks[c]), min_area)
+            labels = np.where(key.mask(images[c], base, hand_masks[c]), 3, hand_masks[c].astype(np.uint8))
+            background = None if backgrounds is None else backgrounds[c]
+            refined = refine_edges(images[c], labels, background, (1, 3), thin=(3,)) == 3
+            out[c] = remove_small(refined & cv2.dilate(hand_masks[c].astype(np.uint8), np.ones((3, 3), np.uint8)) > 0,
+                                  min_area)
     counts = out.reshape(len(out), -1).sum(axis=1)
     report = {"paint_px": counts.tolist(), "skin_chromaticity": base.round(4).tolist(),
               "paint_chromaticity": np.asarray(key.colour).round(4).tolist(), "warnings": []}

@@ -54,8 +54,17 @@ def _object_frames(obj: Take, cameras, backgrounds) -> tuple[np.ndarray, list]:
 
 def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_path: Path | None = None,
                  swatch=None, every: int = 1, progress: Callable | None = None) -> dict:
-    """Masks of a take: {"frame_ns", "hand" (T,C,H,W), "object", "paint" (C,H,W) or None, "report"}."""
-    from ..annotate import frame_groups_from_host_times
+    """Masks of a take.
+
+    Returns {"frame_ns" (T,), "frame_index" (T,C) (the frame of each camera in each group, -1: none),
+    "hand" and "object" (T,C,H,W) bool, "paint" (C,H,W) bool for a canonical take with a paint
+    colour (from the object take or `swatch` B,G,R) else None, "paint_group" (the group it was
+    segmented in, or None), "report" (warnings, frame grouping,
+    paint statistics), "cameras"}. The groups are the sync stage's (as annotate's), every `every`-th;
+    the paint is segmented in the middle group of a canonical take (the hand holds still there). Raises SegmentationError on
+    input it cannot work with; what only lowers the quality is a warning in the report (and a
+    Python warning)."""
+    from ..annotate import sync_groups
 
     take, background = Take(take_path), Take(background_path)
     report: dict = {"warnings": []}
@@ -67,11 +76,13 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_
     model = key = None
     if object_path is not None:
         images, bgs = _object_frames(Take(object_path), take.cameras, backgrounds)
-        model = object_colour(images, bgs)
+        # a canonical take has no object in it, and the paint on its hand has the (painted)
+        # object's colour: there every foreground pixel is hand
+        model = None if take.meta.get("kind") == "canonical" else object_colour(images, bgs)
         key = paint_key_from_object(images, bgs) if swatch is None else None
     if swatch is not None:
         key = PaintKey.from_swatch(swatch)
-    frame_ns, frame_index = frame_groups_from_host_times(take)
+    (frame_ns, frame_index), report["frame_groups"] = sync_groups(take)
     frame_ns, frame_index = frame_ns[::every], frame_index[::every]
     w, h = (int(v) for v in rig.size[0])
     hand = np.zeros((len(frame_ns), len(take.cameras), h, w), bool)
@@ -87,7 +98,7 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_
         hand[t], obj[t], _ = hand_object_masks(images, bgs, rig, model)
         if progress:
             progress(1)
-    paint = None
+    paint = middle = None
     if take.meta.get("kind") == "canonical":
         if key is None:
             report["warnings"].append("canonical take without --object-take or --swatch: no paint masks")
@@ -95,13 +106,30 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_
             middle = len(frame_ns) // 2
             images = np.stack([take.read_frame(cam, int(max(frame_index[middle, c], 0)))
                                for c, cam in enumerate(take.cameras)])
-            paint, paint_report = paint_masks(images, hand[middle], key)
+            lit = [None if b is None else b.at_brightness(image) for b, image in zip(backgrounds, images)]
+            paint, paint_report = paint_masks(images, hand[middle], key, backgrounds=lit)
             report["paint"] = paint_report
             report["warnings"].extend(paint_report["warnings"])
     for message in report["warnings"]:
         warnings.warn(message, stacklevel=2)
-    return {"frame_ns": frame_ns, "hand": hand, "object": obj, "paint": paint, "report": report,
-            "cameras": list(take.cameras)}
+    return {"frame_ns": frame_ns, "frame_index": frame_index, "hand": hand, "object": obj, "paint": paint,
+            "paint_group": middle, "report": report, "cameras": list(take.cameras)}
+
+
+def check_output(path: Path, key: str, force: bool) -> None:
+    """Refuse to replace take `key`'s masks in DATASET.h5 unless `force` (checked before the work)."""
+    import h5py
+
+    path = Path(path)
+    if force or not path.exists():
+        return
+    try:
+        with h5py.File(path, "r") as f:
+            done = f"{key}/masks/hand" in f
+    except OSError as err:
+        raise SegmentationError(f"{path}: not a readable HDF5 file ({err})") from None
+    if done:
+        raise SegmentationError(f"{path}: take {key} already has masks; --force replaces them")
 
 
 def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
@@ -126,22 +154,28 @@ def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
                     del group[name]
                 chunks = (1,) + data.shape[1:] if data.ndim == 4 else None
                 group.create_dataset(name, data=data, compression="gzip", compression_opts=4, chunks=chunks)
-            if "frame_ns" not in group:
-                group.create_dataset("masks/frame_ns", data=result["frame_ns"])
+            # the masks' own frame groups: with --every they are a subset of the annotation's
+            if "masks/frame_ns" in group:
+                del group["masks/frame_ns"]
+            group.create_dataset("masks/frame_ns", data=result["frame_ns"])
             group.attrs["mask_cameras"] = result["cameras"]
             for k, v in attrs.items():
                 group.attrs[k] = v
 
 
-def write_overlays(folder: Path, take: Take, result: dict, t: int = 0) -> list[Path]:
-    """PNG overlays of group t (hand red, object blue, paint green) for a quick look."""
+def write_overlays(folder: Path, take: Take, result: dict, t: int | None = None) -> list[Path]:
+    """PNG overlays FOLDER/CAM.png of group t (hand red, object blue, paint green) for a quick look;
+    by default the group the paint was segmented in, else the first."""
+    if t is None:
+        t = result["paint_group"] or 0
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     for c, cam in enumerate(result["cameras"]):
-        if take.frame_count(cam) == 0:
+        k = int(result["frame_index"][t, c])
+        if k < 0:
             continue
-        image = take.read_frame(cam, min(t, take.frame_count(cam) - 1)).astype(np.float32)
+        image = take.read_frame(cam, k).astype(np.float32)
         tint = np.zeros_like(image)
         tint[result["hand"][t, c]] = (0, 0, 255)
         tint[result["object"][t, c]] = (255, 0, 0)

@@ -10,6 +10,7 @@ import numpy as np
 from ..cameras import CameraRig
 from .background import BackgroundModel, SegmentationError, remove_small
 from .colour import ColourModel, PaintKey
+from .edges import refine_edges
 from .multiview import consistent_masks
 
 
@@ -43,23 +44,50 @@ def paint_key_from_object(images: np.ndarray, backgrounds: Sequence[BackgroundMo
     return PaintKey.from_pixels(object_pixels(images, backgrounds))
 
 
+def _object_by_colour(images: np.ndarray, fg: np.ndarray, object_model: ColourModel) -> np.ndarray:
+    """(C,H,W) foreground pixels more likely of the object's colour than of the skin's.
+
+    The skin's colour model is learnt from this frame group's own foreground away from the
+    object's colours (it follows the subject and the lights). Comparing the two likelihoods
+    rather than thresholding the object's alone keeps the object's shaded edges, whose colour is
+    rare in the object take but rarer still on skin."""
+    matches = np.stack([object_model.matches(image) for image in images])
+    kernel = np.ones((3, 3), np.uint8)
+    skin_px = np.stack([cv2.erode(m.astype(np.uint8), kernel) > 0 for m in fg]) & ~matches
+    if np.count_nonzero(skin_px) < 20:
+        # (almost) all of the foreground is of the object's colour: nothing to compare with
+        return matches
+    skin = ColourModel.fit(images[skin_px])
+    out = np.zeros_like(fg)
+    for c, image in enumerate(images):
+        if fg[c].any():
+            decision = object_model.likelihood(image) > skin.likelihood(image)
+            out[c] = cv2.medianBlur(decision.astype(np.uint8), 3) > 0
+    return out
+
+
 def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None],
                       rig: CameraRig | None = None, object_model: ColourModel | None = None,
                       min_area: int = 8) -> tuple[np.ndarray, np.ndarray, dict]:
     """Hand and object masks (C,H,W) of one frame group, and a report.
 
     Foreground against the empty cube; with a rig, made consistent across the views; split by
-    colour: pixels of the object's colour are object, the rest hand (without an object model,
-    all foreground is hand)."""
+    colour: pixels more likely of the object's colour than of the skin's are object, the rest hand
+    (without an object model, all foreground is hand); last, the pixels along every edge are
+    unmixed against the background and the two classes (edges.refine_edges)."""
     fg = foreground_masks(images, backgrounds, min_area)
     report: dict = {"foreground_px": fg.reshape(len(fg), -1).sum(axis=1).tolist()}
     if rig is not None and np.count_nonzero(fg.reshape(len(fg), -1).any(axis=1)) >= 2:
         fg, report["multiview"] = consistent_masks(rig, fg)
-    if object_model is None:
-        return fg, np.zeros_like(fg), report
+    images = np.asarray(images)
+    is_object = np.zeros_like(fg) if object_model is None else _object_by_colour(images, fg, object_model)
     obj = np.zeros_like(fg)
-    for c, image in enumerate(np.asarray(images)):
-        if fg[c].any():
-            score = cv2.medianBlur(object_model.matches(image).astype(np.uint8), 3) > 0
-            obj[c] = remove_small(score & fg[c], min_area)
-    return fg & ~obj, obj, report
+    hand = fg.copy()
+    for c, image in enumerate(images):
+        if not fg[c].any():
+            continue
+        labels = fg[c].astype(np.uint8)
+        labels[remove_small(is_object[c] & fg[c], min_area)] = 2
+        labels = refine_edges(image, labels, backgrounds[c].at_brightness(image), (1, 2), band=2)
+        hand[c], obj[c] = labels == 1, labels == 2
+    return hand, obj, report

@@ -21,8 +21,9 @@ import click
 @click.option("--every", type=click.IntRange(1), default=1, show_default=True, help="Segment every N-th frame group.")
 @click.option("--overlays", type=click.Path(path_type=Path), default=None, help="Write PNG overlays into this folder.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="DATASET.h5 to add the masks to.")
+@click.option("--force", is_flag=True, help="Replace the take's masks if DATASET.h5 already has them.")
 def command(take: Path, calib: Path, background: Path, object_take: Path | None, swatch: str | None, every: int,
-            overlays: Path | None, output: Path) -> None:
+            overlays: Path | None, output: Path, force: bool) -> None:
     """Segment TAKE: hand and object masks per view and frame group (background, colour, multi-view
     consistency) and, for a canonical take, the green paint on the hand (docs/segmentation.md)."""
     from tqdm import tqdm
@@ -30,7 +31,7 @@ def command(take: Path, calib: Path, background: Path, object_take: Path | None,
     from dataset_tools.annotate import take_key
     from dataset_tools.calibration.formats import load_cameras
     from dataset_tools.segmentation.background import SegmentationError
-    from dataset_tools.segmentation.takes import segment_take, write_masks, write_overlays
+    from dataset_tools.segmentation.takes import check_output, segment_take, write_masks, write_overlays
     from dataset_tools.take import Take
 
     start = time.perf_counter()
@@ -45,6 +46,7 @@ def command(take: Path, calib: Path, background: Path, object_take: Path | None,
     if not calib.exists():
         raise SegmentationError(f"{calib}: no such calibration")
     rig = load_cameras(calib)
+    check_output(output, take_key(take), force)
     with tqdm(desc="segment", unit="group", file=sys.stderr) as bar:
         result = segment_take(take, rig, background, object_take, colour, every, progress=bar.update)
         groups = len(result["frame_ns"])

@@ -1,0 +1,142 @@
+"""`manus-capture segment` end to end: recorded simulated takes -> DATASET.h5 masks scored against
+the per-pixel truth of ground_truth.h5, overlays written, bad input reported."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from dataset_tools.annotate import take_key
+from dataset_tools.cameras import CameraRig
+from manus_capture.cli import cli
+from rig.layouts import make_rig
+from rig.recorder import record_take
+from rig.sim.cube import true_cameras
+
+W, H, FPS = 320, 180, 120
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def _record(root, take, kind, seconds, ticks):
+    """empty (the background), object and `take` of one simulated rig, and its true calibration."""
+    # triggered cameras expose on the tick, so the labels of a tick are what every view saw
+    rig = make_rig("cube53", cameras=5, resolution=(W, H), sync="hardware-trigger", seed=3)
+    rig = dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, paint=True, object="mug"))
+    for name, kind_, secs, labelled in [("empty", "calibration", 0.03, []), ("object", "object", 0.02, []),
+                                        (take, kind, seconds, ticks)]:
+        assert record_take(rig, root / "S", name, kind_, secs, progress=False, label_frames=labelled).status == "complete"
+    true_cameras(rig).save(root / "cameras.json")
+    return root
+
+
+# one small session per test module fixture, so that pytest-xdist workers do not record each other's
+@pytest.fixture(scope="module")
+def grasp_session(tmp_path_factory):
+    return _record(tmp_path_factory.mktemp("grasp"), "grasp", "grasp", 0.03, [0, 3])
+
+
+@pytest.fixture(scope="module")
+def canon_session(tmp_path_factory):
+    return _record(tmp_path_factory.mktemp("canon"), "canon", "canonical", 0.02, [0, 1, 2])
+
+
+def _segment(session, take, *extra):
+    out = session / f"{take}{len(list(session.glob('*.h5')))}.h5"
+    args = ["segment", str(session / "S" / take), "--calib", str(session / "cameras.json"),
+            "--background", str(session / "S" / "empty"), "-o", str(out), *extra]
+    return CliRunner().invoke(cli, args), out
+
+
+def _truth(session, take, frame_ns):
+    with h5py.File(session / "S" / take / "ground_truth.h5") as gt:
+        tick = np.rint((frame_ns - gt.attrs["t0_ns"]) * FPS / 1e9).astype(int)
+        frames = gt["labels/frames"][()].tolist()
+        labels = gt["labels/image"][()]
+    keep = [t for t, k in enumerate(tick) if k in frames]
+    return keep, labels[:, [frames.index(tick[t]) for t in keep]].transpose(1, 0, 2, 3)
+
+
+def test_segment_grasp_take_into_dataset(grasp_session):
+    session = grasp_session
+    result, out = _segment(session, "grasp", "--object-take", str(session / "S" / "object"), "--every", "3",
+                           "--overlays", str(session / "overlays"))
+    assert result.exit_code == 0, result.output
+    with h5py.File(out) as f:
+        group = f[take_key(session / "S" / "grasp")]
+        hand, obj = group["masks/hand"][()], group["masks/object"][()]
+        frame_ns = group["masks/frame_ns"][()]
+        assert group["masks/hand"].compression == "gzip"
+    assert f"segment: {len(frame_ns)} groups x 5 cameras" in result.output
+    keep, truth = _truth(session, "grasp", frame_ns)
+    assert len(keep) == 2   # the groups of ticks 0 and 3, found again through masks/frame_ns
+    hand_iou = iou(hand[keep], (truth == 1) | (truth == 3))
+    obj_iou = iou(obj[keep], truth == 2)
+    # at 320x180 finger edges are a large share of the masks: measured 0.915 / 0.964; the issue's
+    # 0.95 is tested at 640x360 in test_segmentation.py
+    assert hand_iou >= 0.9 and obj_iou >= 0.93, (hand_iou, obj_iou)
+    # the masks are there: a second run asks for --force
+    again = CliRunner().invoke(cli, ["segment", str(session / "S" / "grasp"), "--calib", str(session / "cameras.json"),
+                                     "--background", str(session / "S" / "empty"), "-o", str(out)])
+    assert again.exit_code == 2 and "--force" in again.output, again.output
+    overlays = sorted((session / "overlays").glob("*.png"))
+    assert len(overlays) == 5 and all(cv2.imread(str(p)).shape == (H, W, 3) for p in overlays)
+
+
+def test_segment_canonical_paint(canon_session):
+    session = canon_session
+    result, out = _segment(session, "canon", "--object-take", str(session / "S" / "object"))
+    assert result.exit_code == 0, result.output
+    with h5py.File(out) as f:
+        group = f[take_key(session / "S" / "canon")]
+        paint, hand, frame_ns = group["paint/masks"][()], group["masks/hand"][()], group["masks/frame_ns"][()]
+    middle = len(frame_ns) // 2   # the group the paint is segmented in
+    _, truth = _truth(session, "canon", frame_ns[middle:middle + 1])
+    assert paint.shape == truth[0].shape
+    hand_iou = iou(hand[middle], (truth[0] == 1) | (truth[0] == 3))
+    paint_iou = iou(paint, truth[0] == 3)
+    # 320x180, spots of 50-220 px: measured hand 0.95, paint 0.66 (0.48-0.75 per view); see
+    # test_segmentation.py for the issue's targets at 640x360
+    assert hand_iou >= 0.92 and paint_iou >= 0.55, (hand_iou, paint_iou)
+
+
+def test_segment_bad_input(canon_session, tmp_path):
+    session = canon_session
+    # no background take: one line, exit code 2
+    result = CliRunner().invoke(cli, ["segment", str(session / "S" / "canon"), "--calib", str(session / "cameras.json"),
+                                      "--background", str(tmp_path / "nothing"), "-o", str(tmp_path / "d.h5")])
+    assert result.exit_code == 2 and "nothing" in result.output, result.output
+    # a camera of the take missing from the calibration: one line, exit code 2
+    rig = CameraRig.load(session / "cameras.json")
+    rig.subset(rig.ids[:-1]).save(tmp_path / "four.json")
+    result = CliRunner().invoke(cli, ["segment", str(session / "S" / "canon"), "--calib", str(tmp_path / "four.json"),
+                                      "--background", str(session / "S" / "empty"), "-o", str(tmp_path / "d.h5")])
+    assert result.exit_code == 2 and f"cameras {rig.ids[-1]} are not in the calibration" in result.output, result.output
+    # a camera missing from the background take: a warning, its masks empty, the others still segmented
+    empty = tmp_path / "empty"
+    shutil.copytree(session / "S" / "empty", empty)
+    rows = (empty / "frames.csv").read_text().splitlines()
+    (empty / "frames.csv").write_text("\n".join(r for r in rows if not r.startswith(rig.ids[0] + ",")) + "\n")
+    out = tmp_path / "partial.h5"
+    result = CliRunner().invoke(cli, ["segment", str(session / "S" / "canon"), "--calib", str(session / "cameras.json"),
+                                      "--background", str(empty), "--object-take", str(session / "S" / "object"),
+                                      "--every", "4", "-o", str(out)])
+    assert result.exit_code == 0 and f"warning: camera {rig.ids[0]}: no frames in background take" in result.output
+    assert "(1 warnings" in result.output
+    with h5py.File(out) as f:
+        hand = f[take_key(session / "S" / "canon")]["masks/hand"][()]
+    assert not hand[:, 0].any() and hand[:, 1:].any()
+    # a canonical take without a paint colour: a warning, never silence
+    result, _ = _segment(session, "canon", "--every", "4")
+    assert result.exit_code == 0 and "warning: canonical take without" in result.output
+    # a paint colour that is not on the hand
+    result, _ = _segment(session, "canon", "--swatch", "255,40,40", "--every", "4")
+    assert result.exit_code == 0 and "no paint colour found" in result.output, result.output

@@ -9,11 +9,13 @@ composited on white at full resolution and then reduced by area averaging; 20 vi
 object model (masks: alpha > 0, for the visual-hull initialization and mask pruning), every fifth
 view is held out; PSNR and SSIM on the held-out views (goal: >= 24 dB).
 
-step: one training step (render + L1 + backward) of random Gaussians in one camera, for 10k
-Gaussians at 256x256 and 100k at 512x512, each in a fresh process for its peak resident memory.
-gsplat, the tool a user would otherwise pick, needs CUDA: it is timed side by side when it
-imports and the device is CUDA, and the script says so otherwise. As a CPU baseline the dense
-brute-force renderer (manus_capture.splat.reference) renders a scene small enough for it.
+step: one training step (render + L1 + backward) of random Gaussians in one camera, each in a
+fresh process for its peak memory. CPU: 10k Gaussians at 256x256 and 100k at 512x512 (peak
+resident memory). GPU, only when CUDA is available (`--device cuda`, the default there): 300k
+Gaussians at 1280x720 as well, in steps per second and peak CUDA memory. gsplat, the tool a user
+would otherwise pick, needs CUDA: it is timed side by side when it imports and the device is
+CUDA, with the ratio, and the script says so otherwise. As a CPU baseline the dense brute-force
+renderer (manus_capture.splat.reference) renders a scene small enough for it.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
+STEP_SIZES = ((10_000, 256, 256), (100_000, 512, 512))
+GPU_STEP_SIZES = ((300_000, 1280, 720),)
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_subset"
 
 
@@ -96,34 +100,37 @@ def random_gaussians(n: int, device: str, seed: int = 0):
     return [x.to(device) for x in (means, quats, scales, opacities, colors)]
 
 
-def camera(size: int, device: str):
+def camera(width: int, device: str, height: int | None = None):
+    """A camera 2 units in front of the unit cube; the cube fills the shorter image side."""
+    height = width if height is None else height
+    f = min(width, height) * 1.2
     V = torch.eye(4)[None].clone()
     V[0, 2, 3] = 2.0
-    K = torch.tensor([[[size * 1.2, 0, size / 2 - 0.5], [0, size * 1.2, size / 2 - 0.5], [0, 0, 1]]])
+    K = torch.tensor([[[f, 0, width / 2 - 0.5], [0, f, height / 2 - 0.5], [0, 0, 1]]])
     return V.to(device), K.to(device)
 
 
-def step_child(n: int, size: int, device: str, backend: str, repeats: int) -> None:
+def step_child(n: int, width: int, height: int, device: str, backend: str, repeats: int) -> None:
     """Run in a fresh process: time forward+backward and print JSON with the peak memory."""
     from manus_capture.splat import rasterize
 
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     params = [p.requires_grad_() for p in random_gaussians(n, device)]
-    V, K = camera(size, device)
-    target = torch.rand(1, size, size, 3, device=device)
+    V, K = camera(width, device, height)
+    target = torch.rand(1, height, width, 3, device=device)
     times = []
     for _ in range(repeats + 1):
         if device == "cuda":
             torch.cuda.synchronize()
         t0 = time.perf_counter()
-        rgb, _ = rasterize(*params, V, K, size, size, backend=backend)
+        rgb, _ = rasterize(*params, V, K, width, height, backend=backend)
         (rgb - target).abs().mean().backward()
         if device == "cuda":
             torch.cuda.synchronize()
         times.append(time.perf_counter() - t0)
         for p in params:
             p.grad = None
-    out = {"n": n, "size": size, "backend": backend, "device": device, "step_s": float(np.median(times[1:])),
+    out = {"n": n, "size": f"{width}x{height}", "backend": backend, "device": device, "step_s": float(np.median(times[1:])),
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
            "rss_after_imports_mb": base / 1024,
            "threads": torch.get_num_threads()}
@@ -137,9 +144,10 @@ def bench_step(device: str, repeats: int) -> list[dict]:
 
     rows = []
     backends = ["torch"] + (["gsplat"] if device == "cuda" and gsplat_available() else [])
-    for n, size in ((10_000, 256), (100_000, 512)):
+    for n, width, height in STEP_SIZES + (GPU_STEP_SIZES if device == "cuda" else ()):
         for backend in backends:
-            cmd = [sys.executable, __file__, "--child", str(n), str(size), device, backend, str(repeats)]
+            cmd = [sys.executable, __file__, "--child", str(n), str(width), str(height), device, backend,
+                   str(repeats)]
             out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
             rows.append(json.loads(out.strip().splitlines()[-1]))
     return rows
@@ -171,11 +179,11 @@ def main() -> None:
     parser.add_argument("--sh-degree", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
+    parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        n, size, device, backend, repeats = args.child
-        step_child(int(n), int(size), device, backend, int(repeats))
+        n, width, height, device, backend, repeats = args.child
+        step_child(int(n), int(width), int(height), device, backend, int(repeats))
         return
     todo = args.only or ["reference", "step", "lego"]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {args.device}")
@@ -193,13 +201,15 @@ def main() -> None:
         rows = bench_step(args.device, args.repeats)
         for r in rows:
             extra = f", peak CUDA {r['peak_cuda_mb']:.0f} MB" if "peak_cuda_mb" in r else ""
-            print(f"train step {r['backend']:6s} {r['n']:>7d} Gaussians {r['size']}x{r['size']} on {r['device']} "
-                  f"({r['threads']} threads): {r['step_s']:.3f} s, peak RSS {r['peak_rss_mb']:.0f} MB "
-                  f"(imports alone {r['rss_after_imports_mb']:.0f} MB){extra}")
+            print(f"train step {r['backend']:6s} {r['n']:>7d} Gaussians {r['size']} on {r['device']} "
+                  f"({r['threads']} threads): {r['step_s']:.3f} s ({1 / r['step_s']:.1f} steps/s), "
+                  f"peak RSS {r['peak_rss_mb']:.0f} MB (imports alone {r['rss_after_imports_mb']:.0f} MB){extra}")
         by = {(r["n"], r["backend"]): r["step_s"] for r in rows}
-        for n in (10_000, 100_000):
+        for n, _, _ in STEP_SIZES + GPU_STEP_SIZES:
             if (n, "gsplat") in by:
                 print(f"  ratio torch/gsplat at {n}: {by[(n, 'torch')] / by[(n, 'gsplat')]:.1f}x")
+        if args.device != "cuda":
+            print("GPU section (300k Gaussians at 1280x720): not run, CUDA is not available")
     if "lego" in todo:
         r = bench_lego(args.size, args.iterations, args.points, args.sh_degree, args.device)
         if "skipped" in r:

@@ -35,7 +35,7 @@ from rig.layouts import cube53  # noqa: E402
 
 
 def cube_rig() -> CameraRig:
-    ids, positions, ups = cube53()
+    ids, positions, ups, _ = cube53()
     R = []
     for p, up in zip(positions, ups):
         z = -p / np.linalg.norm(p)  # every camera looks at the cube's centre

@@ -314,3 +314,27 @@ def _copy(src, src_name: str, dst, dst_key: str) -> None:
     parent, _, name = dst_key.rpartition("/")
     target = dst.require_group(parent) if parent else dst
     src.copy(src[src_name], target, name=name)
+
+
+def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray], attrs: dict | None = None) -> None:
+    """Add (or replace) arrays of take `key` in DATASET.h5, gzip-compressed, atomically: a copy of
+    the file is changed and renamed over it. Later stages (segment, contacts) add to the takes
+    that annotate wrote; a crash leaves the old file whole."""
+    import h5py
+
+    path = Path(path)
+    with atomic_output(path) as tmp:
+        if path.exists():
+            shutil.copyfile(path, tmp)
+        with h5py.File(tmp, "a") as f:
+            if "format" not in f.attrs:
+                _new_file_attrs(f)
+            group = f.require_group(key)
+            for name, data in arrays.items():
+                data = np.asarray(data)
+                if name in group:
+                    del group[name]
+                chunks = (1,) + data.shape[1:] if data.ndim >= 3 else None
+                group.create_dataset(name, data=data, compression="gzip", compression_opts=4, chunks=chunks)
+            for k, v in (attrs or {}).items():
+                group.attrs[k] = v

@@ -11,12 +11,20 @@ import numpy as np
 from .config import CameraConfig, RigConfig, SimCameraConfig, SimConfig, StorageConfig, LedConfig
 
 
-def cube53(edge: float = 1.2, inset: float = 0.05, spread: float = 0.4) -> tuple[list[str], np.ndarray, np.ndarray]:
+CENTRE_AIM = (0.0, 0.0, -0.05)     # just above the table top: where the hand works
+OVER_TABLE_AIM = (0.0, 0.0, 0.3)   # floor cameras beside the table look up past it
+
+
+def cube53(edge: float = 1.2, inset: float = 0.05,
+           spread: float = 0.4) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
     """6 faces x a 3x3 grid, less the floor's centre where the table stands: 53 cameras.
 
-    Cameras sit `inset` metres inside each wall on a grid of pitch `spread`, all aimed at the centre.
+    Cameras sit `inset` metres inside each wall on a grid of pitch `spread`, aimed at the centre;
+    the four floor cameras at the middle of the floor's edges would look into the table's side,
+    so they are aimed up over it (they then see the walls' tags and the space above the table).
+    Returns ids, positions, up vectors and aim points.
     """
-    ids, pos, ups = [], [], []
+    ids, pos, ups, aims = [], [], [], []
     h = edge / 2 - inset
     grid = (-spread, 0.0, spread)
     for axis in range(3):
@@ -33,7 +41,9 @@ def cube53(edge: float = 1.2, inset: float = 0.05, spread: float = 0.4) -> tuple
                     ids.append(f"{face}{i}{j}")
                     pos.append(p)
                     ups.append((0.0, 1.0, 0.0) if axis == 2 else (0.0, 0.0, 1.0))
-    return ids, np.array(pos), np.array(ups)
+                    beside_table = face == "z-" and (a == 0) != (b == 0)
+                    aims.append(OVER_TABLE_AIM if beside_table else CENTRE_AIM)
+    return ids, np.array(pos), np.array(ups), np.array(aims)
 
 
 LAYOUTS = {"cube53": cube53}
@@ -72,21 +82,21 @@ def make_rig(layout: str = "cube53", cameras: int | None = None, resolution: tup
     and a little lens distortion; every value is written out so that it can be edited."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
-    ids, pos, ups = LAYOUTS[layout]()
+    ids, pos, ups, aims = LAYOUTS[layout]()
     if cameras is not None:
         if cameras < 1:
             raise ValueError("--cameras must be at least 1")
         keep = spread_subset(pos, cameras)
-        ids, pos, ups = [ids[i] for i in keep], pos[keep], ups[keep]
+        ids, pos, ups, aims = [ids[i] for i in keep], pos[keep], ups[keep], aims[keep]
     rng = np.random.default_rng(seed)
     period_ms = 1000.0 / fps
     width, height = resolution
     cams = []
-    for k, (cam_id, p, up) in enumerate(zip(ids, pos, ups)):
+    for k, (cam_id, p, up, aim) in enumerate(zip(ids, pos, ups, aims)):
         sim = None
         if backend == "sim":
             sim = SimCameraConfig(
-                position=tuple(r(x) for x in p), look_at=(0.0, 0.0, -0.05), up=tuple(float(x) for x in up),
+                position=tuple(r(x) for x in p), look_at=tuple(float(x) for x in aim), up=tuple(float(x) for x in up),
                 hfov_deg=r(rng.uniform(72, 78)),
                 dist=(r(rng.normal(0, 0.03)), r(rng.normal(0, 0.01)), 0.0, 0.0, 0.0),
                 clock_offset_ms=r(rng.uniform(-5, 5)), drift_ppm=r(rng.normal(0, 25)),

@@ -19,6 +19,7 @@ the number of cameras, and the object poses are eliminated (Schur complement) be
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -108,13 +109,14 @@ class Observations:
     xy: np.ndarray      # (M,2)
     point: np.ndarray   # (M,) int, the point id (for reports and triangulation)
     frame: np.ndarray   # (M,) int, the frame index (for reports)
+    weight: np.ndarray | None = None  # (M,) relative 1 / expected error, for sources of unlike precision
 
     def __len__(self) -> int:
         return len(self.cam)
 
     def select(self, mask: np.ndarray) -> "Observations":
         return Observations(self.cam[mask], self.obj[mask], self.local[mask], self.xy[mask],
-                            self.point[mask], self.frame[mask])
+                            self.point[mask], self.frame[mask], None if self.weight is None else self.weight[mask])
 
 
 @dataclass
@@ -240,6 +242,8 @@ class _Adjuster:
     def residuals(self, s: BundleState, obs: Observations) -> tuple[np.ndarray, np.ndarray]:
         """(reprojection residuals (M,2) with 1e3 behind a camera, prior residuals (P,6))."""
         r = np.nan_to_num(residuals_of(s, obs), nan=1e3)
+        if obs.weight is not None:
+            r = r * obs.weight[:, None]
         if not len(self.prior_objs):
             return r, np.zeros((0, 6))
         rv, tv, sig_r, sig_t = self.prior
@@ -424,7 +428,7 @@ def _pnp(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray,
     best = None
     for g in np.unique(labels):
         sel = labels == g
-        if sel.sum() < 4:
+        if len(np.unique(obj[sel], axis=0)) < 4:  # repeated frames of fewer corners fit any pose
             continue
         n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj[sel].reshape(-1, 1, 3), img[sel].reshape(-1, 1, 2), K, dist,
                                                     flags=cv2.SOLVEPNP_IPPE)
@@ -611,18 +615,26 @@ def require_all(names: list[str], problems: dict[str, str], allow_partial: bool)
 
 # --- tag sessions -----------------------------------------------------------------------------
 
+# (the tag-placed cameras, {camera: (K, dist)}) -> {camera: features.SceneAnchors}
+SceneCallback = Callable[[CameraRig, dict[str, tuple[np.ndarray, np.ndarray]]], dict]
+
+
 def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[str, tuple[int, int]],
                       layout: TagLayout, intrinsics: dict[str, tuple[np.ndarray, np.ndarray]],
                       refine_intrinsics: bool = False, refine_tags: bool = False, tag_sigma_m: float = 0.002,
                       allow_partial: bool = False, ransac_px: float = 4.0,
-                      initial_poses: dict[str, np.ndarray] | None = None) -> RigCalibration:
+                      initial_poses: dict[str, np.ndarray] | None = None,
+                      scene: SceneCallback | None = None) -> RigCalibration:
     """Calibrate static cameras from tags on the walls (tags.json, world frame).
 
     detections: {camera: {frame: Detection}} with tag point ids (tag_id * 4 + corner);
     intrinsics: {camera: (K, dist)}. refine_tags: each tag also moves (rigidly), held to the
     layout by a prior of tag_sigma_m metres (and the matching angle), for layouts measured by hand.
-    initial_poses: {camera: (4,4) world-to-camera} for cameras whose tags are too few for PnP
-    (from COLMAP): they join the adjustment, anchored by the scene they share with others.
+    Cameras whose tags are too few for PnP are placed after the others:
+    scene: (the tag-placed cameras, {camera: (K, dist)}) -> {camera: features.SceneAnchors}; each
+      such camera is resected from scene points the placed cameras triangulate, and adjusted on
+      those points and whatever tag corners it sees (rig.py passes features.scene_anchors);
+    initial_poses: {camera: (4,4) world-to-camera} (from COLMAP) for those the scene does not place.
     """
     pid, world = layout.points()
     lookup = {int(p): i for i, p in enumerate(pid)}
@@ -630,6 +642,7 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
     problems: dict[str, str] = {}
     placed: dict[str, np.ndarray] = {}
     pnp_rms: dict[str, float] = {}
+    short: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}  # camera -> (why, known point ids, pixels)
     for name in names:
         if name not in intrinsics:
             problems[name] = "no intrinsics"
@@ -639,17 +652,15 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
         xy = np.concatenate([d.xy for d in dets]) if dets else np.zeros((0, 2))
         known = np.array([i in lookup for i in ids.tolist()], bool)
         n_tags = len(np.unique(ids[known] // 4))
-        if known.sum() < MIN_TAG_POINTS:
-            seen = np.unique(ids // 4)
-            if initial_poses and name in initial_poses:
-                placed[name] = _single_tag_pose(ids[known], world[[lookup[i] for i in ids[known].tolist()]],
-                                                xy[known], intrinsics.get(name), initial_poses[name])
-                continue
-            other = np.setdiff1d(seen, layout.ids)
-            problems[name] = (f"sees no tag of {layout.source}" if n_tags == 0 else
-                              f"sees only {n_tags} tag(s) of {layout.source}, needs {MIN_TAG_POINTS // 4}")
+        # distinct corners: the frames of a static camera repeat the same few
+        if len(np.unique(ids[known])) < MIN_TAG_POINTS:
+            other = np.setdiff1d(np.unique(ids // 4), layout.ids)
+            why = (f"sees no tag of {layout.source}" if n_tags == 0 else
+                   f"sees only {len(np.unique(ids[known]))} corner(s) of {n_tags} tag(s) of {layout.source}, "
+                   f"needs {MIN_TAG_POINTS} ({MIN_TAG_POINTS // 4} whole tags)")
             if len(other):
-                problems[name] += f" (it sees tags {other[:10].tolist()}, which the layout does not list)"
+                why += f" (it sees tags {other[:10].tolist()}, which the layout does not list)"
+            short[name] = (why, ids[known], xy[known])
             continue
         K, dist = intrinsics[name]
         obj = world[[lookup[i] for i in ids[known].tolist()]]
@@ -662,44 +673,105 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
         T[:3, 3] = out[1]
         placed[name] = T
         pnp_rms[name] = out[3]
-    require_all(names, problems, allow_partial)
-    cams = [n for n in names if n in placed]
-    if not cams:
+    if not placed:
+        require_all(names, {**problems, **{n: s[0] for n, s in short.items()}}, allow_partial)
         raise ExtrinsicsError("no camera could be placed from the tags")
+    cams = [n for n in names if n in placed]
     obs, pidx = _tag_observations(detections, cams, lookup)
-    if refine_tags:
-        # Each tag is its own rigid object, starting at (and held near) its layout pose.
-        tag_ids = layout.ids
-        obj_index = pidx // 4
-        centre = layout.corners.mean(axis=1)
-        local = world[pidx] - centre[obj_index]
-        n_obj = len(tag_ids)
-        obj_rvec, obj_t = np.zeros((n_obj, 3)), centre.copy()
-        fixed_objs = np.zeros(n_obj, bool)
-        prior = (obj_rvec.copy(), obj_t.copy(), tag_sigma_m / layout.size, tag_sigma_m)
-    else:
-        obj_index = np.zeros(len(pidx), int)
-        local = world[pidx]
-        obj_rvec, obj_t = np.zeros((1, 3)), np.zeros((1, 3))
-        fixed_objs = np.ones(1, bool)
-        prior = None
-    obs.obj, obs.local = obj_index, local
+    obs, obj_rvec, obj_t, prior = _tag_objects(obs, pidx, world, layout, refine_tags, tag_sigma_m)
     camT = np.array([placed[n] for n in cams])
     state = BundleState(np.array([pack_intrinsics(*intrinsics[n]) for n in cams]),
                         matrix_to_rotvec(camT[:, :3, :3]), camT[:, :3, 3].copy(), obj_rvec, obj_t)
-    seen = np.isin(np.arange(len(cams)), obs.cam)
-    imask = (np.ones((len(cams), N_INTRINSICS), bool) & seen[:, None]) if refine_intrinsics else None
-    # Cameras without a tag observation keep their given pose (nothing here could move them).
-    result = bundle_adjust(state, obs, ~seen, fixed_objs, imask, obj_prior=prior)
-    size_arr = np.array([sizes[n] for n in cams])
-    stats = camera_stats(tuple(cams), result.obs, result.residuals, size_arr)
-    rig = _rig_from_state(cams, result.state, size_arr, stats)
+    imask = np.ones((len(cams), N_INTRINSICS), bool) if refine_intrinsics else None
+    result = bundle_adjust(state, obs, np.zeros(len(cams), bool), np.full(len(obj_t), not refine_tags), imask,
+                           obj_prior=prior)
     extra = {"pnp_rms_px": pnp_rms, "ba_rms_before_px": result.cost_initial_px}
     if refine_tags:
         moved = np.linalg.norm(result.state.obj_t - obj_t, axis=1)
         extra["tag_shift_m"] = {int(t): float(m) for t, m in zip(layout.ids, moved)}
-    return RigCalibration(rig, "tags", stats, result.obs, result.residuals, result.outliers,
+    anchors, late = {}, {}
+    if short and scene is not None:
+        first = _rig_from_state(cams, result.state, np.array([sizes[n] for n in cams]))
+        anchors = scene(first, {n: intrinsics[n] for n in short})
+    for name, (why, ids_k, xy_k) in short.items():
+        if name in anchors:
+            late[name] = anchors[name].pose
+        elif initial_poses and name in initial_poses:
+            late[name] = _single_tag_pose(ids_k, world[[lookup[i] for i in ids_k.tolist()]], xy_k,
+                                          intrinsics.get(name), initial_poses[name])
+        else:
+            problems[name] = why
+    require_all(names, problems, allow_partial)
+    outliers = result.outliers
+    if late:
+        result = _adjust_late(result, cams, late, anchors, detections, lookup, world, layout, refine_tags,
+                              intrinsics, int(pid.max()) + 1)
+        outliers += result.outliers
+        cams = cams + list(late)
+        extra["scene_points"] = {n: {"points": len(a.points), "cameras": a.matched_cameras} for n, a in anchors.items()}
+        extra["colmap_poses"] = [n for n in late if n not in anchors]
+    size_arr = np.array([sizes[n] for n in cams])
+    stats = camera_stats(tuple(cams), result.obs, result.residuals, size_arr)
+    rig = _rig_from_state(cams, result.state, size_arr, stats)
+    return RigCalibration(rig, "tags", stats, result.obs, result.residuals, outliers,
                           partial=bool(problems), missing=problems, extra=extra)
+
+
+def _tag_objects(obs: Observations, pidx: np.ndarray, world: np.ndarray, layout: TagLayout, refine_tags: bool,
+                 tag_sigma_m: float) -> tuple[Observations, np.ndarray, np.ndarray, tuple | None]:
+    """The rigid objects tag corners belong to: the world (one fixed object), or with refine_tags
+    each tag on its own, starting at (and held near by a prior) its layout pose."""
+    if refine_tags:
+        centre = layout.corners.mean(axis=1)
+        obs.obj, obs.local = pidx // 4, world[pidx] - centre[pidx // 4]
+        obj_rvec, obj_t = np.zeros((len(layout.ids), 3)), centre.copy()
+        return obs, obj_rvec, obj_t, (obj_rvec.copy(), obj_t.copy(), tag_sigma_m / layout.size, tag_sigma_m)
+    obs.obj, obs.local = np.zeros(len(pidx), int), world[pidx]
+    return obs, np.zeros((1, 3)), np.zeros((1, 3)), None
+
+
+def _adjust_late(first: BundleResult, cams: list[str], late: dict[str, np.ndarray], anchors: dict,
+                 detections, lookup, world, layout, refine_tags, intrinsics, first_scene_id: int) -> BundleResult:
+    """Adjust the cameras placed after the tag adjustment (scene points, COLMAP), the others held
+    where the tags put them. Scene points are fixed world points (one more object, the identity);
+    their point ids start at first_scene_id, their frame is -1."""
+    every = cams + list(late)
+    obs, pidx = _tag_observations(detections, every, lookup)
+    obs, _, _, _ = _tag_objects(obs, pidx, world, layout, refine_tags, 0.0)
+    world_obj = len(first.state.obj_t)
+    obs.weight = np.ones(len(obs))
+    # inverse-error weights: tag corners fit to hundredths of a pixel, scene features to tenths, so
+    # a camera's few tag corners must not be outvoted by its many scene points. The tags are
+    # weighted up rather than the scene down: the robust loss keeps its scale (pixels) for the
+    # scene points, which are the ones with outliers.
+    tag_rms = float(np.sqrt(np.nanmean(np.sum(first.residuals**2, axis=1))))
+    rows, next_id = [obs], first_scene_id
+    for name, a in anchors.items():
+        if name not in late:
+            continue
+        n, c = len(a.points), every.index(name)
+        rms = float(np.sqrt(np.mean(np.sum((_project_pose(a.points, a.pose, intrinsics[name]) - a.xy) ** 2, axis=1))))
+        obs.weight[obs.cam == c] = max(1.0, rms / max(tag_rms, 1e-9))
+        rows.append(Observations(np.full(n, c), np.full(n, world_obj), a.points, a.xy,
+                                 np.arange(next_id, next_id + n), np.full(n, -1), np.ones(n)))
+        next_id += n
+    obs = Observations(*(np.concatenate([getattr(r, f) for r in rows]) for f in
+                         ("cam", "obj", "local", "xy", "point", "frame", "weight")))
+    lateT = np.array(list(late.values()))
+    s = first.state
+    state = BundleState(np.concatenate([s.intr, [pack_intrinsics(*intrinsics[n]) for n in late]]),
+                        np.concatenate([s.cam_rvec, matrix_to_rotvec(lateT[:, :3, :3])]),
+                        np.concatenate([s.cam_t, lateT[:, :3, 3]]),
+                        np.concatenate([s.obj_rvec, np.zeros((1, 3))]), np.concatenate([s.obj_t, np.zeros((1, 3))]))
+    # a late camera that nothing here sees (no tag, no scene point) keeps its COLMAP pose
+    free = np.isin(np.arange(len(every)), obs.cam) & (np.arange(len(every)) >= len(cams))
+    return bundle_adjust(state, obs, ~free, np.ones(world_obj + 1, bool))
+
+
+def _project_pose(X: np.ndarray, pose: np.ndarray, intr: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """World points (N,3) to distorted pixels (N,2) of one camera (world-to-camera pose (4,4))."""
+    Xc = X @ pose[:3, :3].T + pose[:3, 3]
+    return project_points(Xc, np.broadcast_to(pack_intrinsics(*intr), (len(X), N_INTRINSICS)))
 
 
 def _single_tag_pose(pid: np.ndarray, obj: np.ndarray, img: np.ndarray, intr, rough: np.ndarray) -> np.ndarray:
@@ -708,7 +780,7 @@ def _single_tag_pose(pid: np.ndarray, obj: np.ndarray, img: np.ndarray, intr, ro
     when no tag is seen whole."""
     import cv2
 
-    tags, counts = np.unique(pid // 4, return_counts=True)
+    tags, counts = np.unique(np.unique(pid) // 4, return_counts=True)  # distinct corners per tag
     if intr is None or not (counts >= 4).any():
         return rough
     sel = pid // 4 == tags[np.argmax(counts >= 4)]

@@ -1,11 +1,12 @@
 """calibrate_rig: every camera of a take (or of per-camera image lists) in one call.
 
 Methods:
-- "tags": tag PnP per camera and one bundle adjustment (extrinsics.calibrate_tag_rig);
+- "tags": tag PnP per camera and one bundle adjustment (extrinsics.calibrate_tag_rig); cameras
+  short of tags are then resected from scene features the others triangulate (features.py);
 - "board": a board seen by several cameras at once (extrinsics.calibrate_board_rig);
 - "colmap": COLMAP structure from motion, moved into the tag world frame (colmap.py);
-- "both": COLMAP and tags; cameras too short of tags for PnP keep their COLMAP pose inside the
-  tag adjustment, and the report compares the two methods camera by camera;
+- "both": COLMAP and tags; cameras short of tags that the scene features cannot place keep their
+  COLMAP pose inside the tag adjustment, and the report compares the two methods camera by camera;
 - "auto": tags when a tag layout is given, else board.
 Intrinsics are fixed from a file (--intrinsics), or calibrated per camera from a board seen in
 the same take.
@@ -131,7 +132,8 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
         else:
             say("tag PnP and bundle adjustment")
             result = calibrate_tag_rig(tag_dets, tag_sizes, layout, intr, refine_tags=refine_tags,
-                                       allow_partial=allow_partial, initial_poses=initial or None)
+                                       allow_partial=allow_partial, initial_poses=initial or None,
+                                       scene=_scene(tag_src, tag_dets, say))
             result.missing.update(problems)
             result.partial = bool(result.missing)
             if colmap_rig is not None:
@@ -250,16 +252,34 @@ def _colmap(sources, tag_dets, sizes, intr, layout):
     """COLMAP on one frame per camera (the one with most tag corners), aligned to the tags."""
     from .colmap import align_to_tags, colmap_poses
 
-    frames, images, dets = {}, {}, {}
+    images, dets = {}, {}
     for cam, src in sources.items():
-        found = tag_dets.get(cam, {})
-        frame = max(found, key=lambda f: len(found[f])) if found else (src.frames[0] if src.frames else 0)
-        frames[cam] = frame
-        dets[cam] = found.get(frame)
-        images[cam] = next(g for _, g in read_frames(FrameSource(src.paths, (frame,), src.arrays, src.camera)))
+        frame, images[cam] = _best_frame(src, tag_dets.get(cam, {}))
+        dets[cam] = tag_dets.get(cam, {}).get(frame)
     poses, stats = colmap_poses(images, intr)
     rig, info = align_to_tags(poses, intr, sizes, {c: d for c, d in dets.items() if d is not None}, layout)
     return rig, {**stats, **info}
+
+
+def _best_frame(source: FrameSource, found: dict[int, Detection]) -> tuple[int, np.ndarray]:
+    """The frame of a static camera with most tag corners (the first one read when it sees none)."""
+    frame = max(found, key=lambda f: len(found[f])) if found else (source.frames[0] if source.frames else 0)
+    return frame, next(g for _, g in read_frames(FrameSource(source.paths, (frame,), source.arrays, source.camera)))
+
+
+def _scene(sources: dict[str, FrameSource], tag_dets: dict[str, dict[int, Detection]],
+           say: Callable[[str], None]) -> Callable:
+    """extrinsics.calibrate_tag_rig's `scene`: one image per camera, read only when a camera is
+    short of tags. (The mean of a static camera's frames, with less noise, placed the cameras no
+    better: what limits them is the few, weak features they share with the others.)"""
+    def anchors(calibrated: CameraRig, targets: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
+        from .features import scene_anchors
+
+        say(f"scene features for {len(targets)} camera(s) short of tags")
+        images = {c: _best_frame(sources[c], tag_dets.get(c, {}))[1] for c in (*calibrated.ids, *targets)
+                  if c in sources}
+        return scene_anchors(images, calibrated, targets)
+    return anchors
 
 
 def _pose(rig: CameraRig, cam: str) -> np.ndarray:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -11,7 +10,6 @@ import cv2
 import numpy as np
 
 from ..cameras import CameraRig
-from ..fileio import atomic_output
 from ..take import Take
 from .background import BackgroundModel, SegmentationError
 from .colour import PaintKey
@@ -133,34 +131,15 @@ def check_output(path: Path, key: str, force: bool) -> None:
 
 
 def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
-    """Add masks/hand, masks/object (and paint/masks) to take `key` of DATASET.h5, atomically:
-    a copy of the file is changed and renamed over it. (DatasetWriter writes whole annotations;
-    masks come later, from another command, so they are added to the take's group here.)"""
-    import h5py
+    """Add masks/hand, masks/object, masks/frame_ns (and paint/masks) to take `key` of
+    DATASET.h5, atomically (dataset.add_arrays). The masks' own frame groups are stored: with
+    --every they are a subset of the annotation's."""
+    from ..dataset import add_arrays
 
-    path = Path(path)
-    with atomic_output(path) as tmp:
-        if path.exists():
-            shutil.copyfile(path, tmp)
-        with h5py.File(tmp, "a") as f:
-            f.attrs.setdefault("format", "manus-capture dataset")
-            f.attrs.setdefault("version", 1)
-            group = f.require_group(key)
-            names = [("masks/hand", result["hand"]), ("masks/object", result["object"])]
-            if result["paint"] is not None:
-                names.append(("paint/masks", result["paint"]))
-            for name, data in names:
-                if name in group:
-                    del group[name]
-                chunks = (1,) + data.shape[1:] if data.ndim == 4 else None
-                group.create_dataset(name, data=data, compression="gzip", compression_opts=4, chunks=chunks)
-            # the masks' own frame groups: with --every they are a subset of the annotation's
-            if "masks/frame_ns" in group:
-                del group["masks/frame_ns"]
-            group.create_dataset("masks/frame_ns", data=result["frame_ns"])
-            group.attrs["mask_cameras"] = result["cameras"]
-            for k, v in attrs.items():
-                group.attrs[k] = v
+    arrays = {"masks/hand": result["hand"], "masks/object": result["object"], "masks/frame_ns": result["frame_ns"]}
+    if result["paint"] is not None:
+        arrays["paint/masks"] = result["paint"]
+    add_arrays(path, key, arrays, {"mask_cameras": result["cameras"], **attrs})
 
 
 def write_overlays(folder: Path, take: Take, result: dict, t: int | None = None) -> list[Path]:

@@ -92,6 +92,9 @@ def rig(take: Path, tags_file, board_file, method, intrinsics_file, allow_partia
                                board_frames=board_frames, refine_tags=refine_tags, workers=workers, output=output,
                                force=force, progress=bars)
     status = "PARTIAL, " + ", ".join(result.missing) + " left out" if result.partial else "complete"
+    scene = result.extra.get("scene_points")
+    if scene:  # millimetres rather than tenths: say which cameras to aim at more tags
+        status += f"; {', '.join(scene)} short of tags, placed from scene features"
     click.echo(f"wrote {output}: {len(result.rig)} cameras ({result.method}), reprojection RMS {result.rms_px:.3f} px, "
                f"median {result.median_px:.3f} px over {len(result.obs)} observations; {status}")
 

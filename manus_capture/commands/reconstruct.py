@@ -1,14 +1,14 @@
-"""`manus-capture reconstruct`: Gaussian models of the object (and, later, the hand).
+"""`manus-capture reconstruct`: Gaussian models of the object and of the hand (MANUS-Hand).
 
     manus-capture reconstruct object --cameras CALIB/cameras.json --take TAKE [--frame K] \\
-        [--masks DIR] [--test-cameras a,b] -o object.safetensors
+        [--masks truth|DIR] [--test-cameras a,b] -o object.safetensors
     manus-capture reconstruct object --cameras cameras.json --images DIR [--masks DIR] -o object.safetensors
-    manus-capture reconstruct render object.safetensors --cameras cameras.json -o DIR
+    manus-capture reconstruct hand --cameras cameras.json --take HAND_TAKE (--dataset DATASET.h5 | --truth) \\
+        [--frames 0,12,24] [--test-frames 36] -o hand.safetensors
+    manus-capture reconstruct render model.safetensors --cameras cameras.json -o DIR
 
-Images come from one frame of a take (every camera's frame index K) or from a folder with one
-image per camera, named by camera id (CAM.png or CAM.jpg); masks from a folder of CAM.png
-(non-zero = object). Images and masks are undistorted with the calibration and may be reduced
-(--scale) before training. See docs/splat.md.
+The command is a thin layer over manus_capture.splat.takes (views from takes) and the trainers;
+see docs/splat.md.
 """
 
 from __future__ import annotations
@@ -52,120 +52,205 @@ def _read_image(folder: Path, cam: str, flags: int) -> np.ndarray:
     raise ReconstructInputError(f"{folder}: no image for camera {cam!r} ({cam}.png or {cam}.jpg)")
 
 
-def _prepare(rig, images: list[np.ndarray], masks: list[np.ndarray] | None, scale: float):
-    """Undistort and reduce: (images (V,H,W,3) float RGB in [0,1], masks (V,H,W) bool | None, K (V,3,3))."""
-    import cv2
+def _id_list(text: str) -> list[str]:
+    return [c.strip() for c in text.split(",") if c.strip()]
 
-    out_images, out_masks, Ks = [], [], []
-    for i, image in enumerate(images):
-        K, dist = rig.K[i], rig.dist[i]
-        w, h = int(rig.size[i, 0]), int(rig.size[i, 1])
-        if image.shape[:2] != (h, w):
-            raise ReconstructInputError(f"camera {rig.ids[i]}: image is {image.shape[1]}x{image.shape[0]}, "
-                                        f"the calibration says {w}x{h}")
-        size = (max(int(round(w * scale)), 1), max(int(round(h * scale)), 1))
-        sx, sy = size[0] / w, size[1] / h
-        # Pixel centres at integer coordinates: x' = (x + 0.5) s - 0.5.
-        K_new = np.array([[K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5],
-                          [0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5], [0, 0, 1]])
-        undistorted = cv2.undistort(image, K, dist)
-        out_images.append(cv2.resize(undistorted, size, interpolation=cv2.INTER_AREA)[..., ::-1] / 255.0)
-        if masks is not None:
-            m = cv2.undistort((masks[i] > 0).astype(np.float32), K, dist)
-            out_masks.append(cv2.resize(m, size, interpolation=cv2.INTER_AREA) > 0.5)
-        Ks.append(K_new)
-    sizes = {im.shape[:2] for im in out_images}
-    if len(sizes) != 1:
-        raise ReconstructInputError(f"the cameras' image sizes differ after --scale ({sorted(sizes)}); "
-                                    "train cameras of one resolution together")
-    return (np.stack(out_images).astype(np.float32), None if masks is None else np.stack(out_masks),
-            np.stack(Ks))
+
+def _int_list(text: str, option: str) -> list[int]:
+    try:
+        return [int(v) for v in _id_list(text)]
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: expected comma-separated frame numbers", param_hint=option) from None
+
+
+def _load_rig(cameras_path: Path, only: str):
+    """The calibration, restricted to --only-cameras when given (KeyError names an unknown id)."""
+    from dataset_tools.calibration.formats import load_cameras
+
+    rig = load_cameras(cameras_path)
+    ids = _id_list(only)
+    return rig.subset(ids) if ids else rig
+
+
+def _check_output(output: Path, force: bool) -> None:
+    if output.exists() and not force:
+        raise ReconstructInputError(f"{output}: exists (use --force to overwrite)")
+
+
+def _lpips(weights: Path | None, net: str):
+    from manus_capture.splat.losses import load_lpips
+
+    return None if weights is None else load_lpips(weights, net)
+
+
+def _scores_text(scores: dict[str, float]) -> str:
+    text = f"held-out PSNR {scores['psnr']:.2f} dB, SSIM {scores['ssim']:.3f}"
+    if "psnr_mask" in scores:
+        text += f", PSNR on the mask {scores['psnr_mask']:.2f} dB"
+    if "lpips" in scores:
+        text += f", LPIPS {scores['lpips']:.3f}"
+    return text
 
 
 @click.group("reconstruct", context_settings={"help_option_names": ["-h", "--help"]})
 def command() -> None:
-    """Train Gaussian models of the object (and render them)."""
+    """Train Gaussian models of the object and of the hand (and render them)."""
+
+
+def _common_options(f):
+    """Options shared by `object` and `hand`."""
+    options = [
+        click.option("--cameras", "cameras_path", type=click.Path(path_type=Path), required=True,
+                     help="The calibration (cameras.json or any format load_cameras reads)."),
+        click.option("--only-cameras", default="", help="Comma-separated camera ids to use (default: all)."),
+        click.option("--scale", type=click.FloatRange(0.01, 1.0), default=0.25, show_default=True,
+                     help="Image scale for training."),
+        click.option("--crop-margin", type=click.IntRange(0), default=8, show_default=True,
+                     help="Train on windows this many pixels around the masks (views with masks)."),
+        click.option("--sh-degree", type=click.IntRange(0, 3), default=1, show_default=True),
+        click.option("--background", default="0,0,0", show_default=True, help="Background colour r,g,b in [0,1]."),
+        click.option("--lpips-weights", type=click.Path(path_type=Path, exists=True), default=None,
+                     help="LPIPS state dict (see docs/splat.md); LPIPS is off without it."),
+        click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default="alex", show_default=True),
+        click.option("--seed", type=int, default=0, show_default=True),
+        click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+                     help="Checkpoint (.safetensors)."),
+        click.option("--force", is_flag=True, help="Overwrite an existing checkpoint."),
+    ]
+    for option in reversed(options):
+        f = option(f)
+    return f
 
 
 @command.command("object")
-@click.option("--cameras", "cameras_path", type=click.Path(path_type=Path), required=True,
-              help="The calibration (cameras.json or any format load_cameras reads).")
 @click.option("--take", type=click.Path(path_type=Path), default=None, help="Object take: images from its videos.")
-@click.option("--frame", type=click.IntRange(0), default=0, show_default=True, help="Frame index in the take.")
+@click.option("--frame", type=click.IntRange(0), default=None,
+              help="Frame index in the take (default: the first labelled tick with --masks truth, else 0).")
 @click.option("--images", "images_dir", type=click.Path(path_type=Path), default=None,
               help="Folder with one image per camera (CAM.png / CAM.jpg), instead of --take.")
-@click.option("--masks", "masks_dir", type=click.Path(path_type=Path), default=None,
-              help="Folder with one object mask per camera (CAM.png, non-zero = object).")
+@click.option("--masks", "masks_arg", default=None,
+              help="'truth' (labels of a simulated take's ground_truth.h5) or a folder with one object mask "
+                   "per camera (CAM.png, non-zero = object).")
 @click.option("--test-cameras", default="", help="Comma-separated camera ids held out for evaluation.")
-@click.option("--scale", type=click.FloatRange(0.01, 1.0), default=0.25, show_default=True,
-              help="Image scale for training.")
-@click.option("--iterations", type=click.IntRange(1), default=7000, show_default=True)
-@click.option("--sh-degree", type=click.IntRange(0, 3), default=3, show_default=True)
-@click.option("--points", type=click.IntRange(1), default=20_000, show_default=True,
+@click.option("--iterations", type=click.IntRange(1), default=1000, show_default=True)
+@click.option("--points", type=click.IntRange(1), default=3000, show_default=True,
               help="Initial Gaussians in the visual hull.")
-@click.option("--background", default="0,0,0", show_default=True, help="Background colour r,g,b in [0,1].")
-@click.option("--lpips-weights", type=click.Path(path_type=Path, exists=True), default=None,
-              help="LPIPS state dict (see docs/splat.md); LPIPS is off without it.")
-@click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default="alex", show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="Checkpoint (.safetensors).")
-@click.option("--force", is_flag=True, help="Overwrite an existing checkpoint.")
-def object_command(cameras_path: Path, take: Path | None, frame: int, images_dir: Path | None,
-                   masks_dir: Path | None, test_cameras: str, scale: float, iterations: int, sh_degree: int,
-                   points: int, background: str, lpips_weights: Path | None, lpips_net: str, seed: int,
-                   output: Path, force: bool) -> None:
+@_common_options
+def object_command(take: Path | None, frame: int | None, images_dir: Path | None, masks_arg: str | None,
+                   test_cameras: str, iterations: int, points: int, cameras_path: Path, only_cameras: str,
+                   scale: float, crop_margin: int, sh_degree: int, background: str, lpips_weights: Path | None,
+                   lpips_net: str, seed: int, output: Path, force: bool) -> None:
     """Fit static Gaussians to the calibrated views of an object; print held-out PSNR/SSIM."""
     import cv2
 
-    from dataset_tools.calibration.formats import load_cameras
     from manus_capture.splat.checkpoint import save_checkpoint
-    from manus_capture.splat.losses import load_lpips
+    from manus_capture.splat.takes import crop_views, object_views_from_take, undistort
     from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, train_object
 
     if (take is None) == (images_dir is None):
         raise click.UsageError("give exactly one of --take and --images")
-    if output.exists() and not force:
-        raise ReconstructInputError(f"{output}: exists (use --force to overwrite)")
+    if masks_arg == "truth" and take is None:
+        raise click.UsageError("--masks truth needs --take (a simulated take with ground_truth.h5)")
+    _check_output(output, force)
     bg = _colour(background)
-    rig = load_cameras(cameras_path)
-    held_out = [c.strip() for c in test_cameras.split(",") if c.strip()]
+    rig = _load_rig(cameras_path, only_cameras)
+    held_out = _id_list(test_cameras)
     for cam in held_out:
         rig.index(cam)  # KeyError names an unknown camera
+    masks = None
+    if masks_arg is not None and masks_arg != "truth":
+        masks = np.stack([_read_image(Path(masks_arg), c, cv2.IMREAD_GRAYSCALE) > 0 for c in rig.ids])
     if take is not None:
-        from dataset_tools.take import Take
-
-        tk = Take(take)
-        missing = [c for c in rig.ids if c not in tk.cameras]
-        if missing:
-            raise ReconstructInputError(f"{take}: no videos of calibrated cameras {', '.join(missing)}")
-        raw = [tk.read_frame(cam, frame) for cam in rig.ids]
+        views = object_views_from_take(take, rig, frame, masks_arg if masks_arg == "truth" else masks, scale)
     else:
-        raw = [_read_image(images_dir, cam, cv2.IMREAD_COLOR) for cam in rig.ids]
-    raw_masks = None if masks_dir is None else [_read_image(masks_dir, c, cv2.IMREAD_GRAYSCALE) for c in rig.ids]
-    images, masks, Ks = _prepare(rig, raw, raw_masks, scale)
-    views = Views.from_rig(images, Ks, rig.R, rig.t, masks)
-    test_idx = [rig.index(c) for c in held_out]
-    train_idx = [i for i in range(len(rig)) if i not in test_idx]
+        images = [_read_image(images_dir, cam, cv2.IMREAD_COLOR) for cam in rig.ids]
+        imgs, msk, Ks = undistort(rig, images, masks, scale)
+        views = Views.from_rig(imgs, Ks, rig.R, rig.t, msk, rig.ids)
+    test_idx = [i for i, c in enumerate(views.ids) if c in held_out]
+    train_idx = [i for i in range(len(views)) if i not in test_idx]
     if not train_idx:
         raise click.UsageError("--test-cameras holds out every camera")
 
-    cfg = ObjectConfig(iterations=iterations, sh_degree=sh_degree, init_points=points, background=bg,
-                       lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net,
-                       seed=seed)
+    cfg = ObjectConfig.fast(iterations, sh_degree=sh_degree, init_points=points, background=bg,
+                            lpips_weights=None if lpips_weights is None else str(lpips_weights),
+                            lpips_net=lpips_net, seed=seed)
     start = time.perf_counter()
-    result = train_object(views.subset(train_idx), cfg)
+    result = train_object(crop_views(views.subset(train_idx), crop_margin), cfg)
     elapsed = time.perf_counter() - start
     save_checkpoint(output, result.gaussians, kind="object",
                     metadata={"calibration": str(cameras_path), "source": str(take or images_dir),
                               "frame": str(frame), "scale": str(scale), "background": background,
-                              "test_cameras": ",".join(held_out)})
+                              "cameras": ",".join(views.ids), "test_cameras": ",".join(held_out)})
     summary = f"{output}: {len(result.gaussians)} Gaussians from {len(train_idx)} views, {elapsed:.0f} s"
     if test_idx:
-        lpips = None if lpips_weights is None else load_lpips(lpips_weights, lpips_net)
-        scores = evaluate(result.gaussians, views.subset(test_idx), bg, lpips)
-        summary += f"; held-out PSNR {scores['psnr']:.2f} dB, SSIM {scores['ssim']:.3f}"
-        if "lpips" in scores:
-            summary += f", LPIPS {scores['lpips']:.3f}"
+        summary += "; " + _scores_text(evaluate(result.gaussians, views.subset(test_idx), bg,
+                                                _lpips(lpips_weights, lpips_net)))
+    click.echo(summary)
+
+
+@command.command("hand")
+@click.option("--take", type=click.Path(path_type=Path), required=True, help="The subject's hand take.")
+@click.option("--dataset", "dataset_path", type=click.Path(path_type=Path), default=None,
+              help="DATASET.h5 from annotate: joint angles, bone lengths and frame groups of the take.")
+@click.option("--dataset-take", default=None, help="SESSION/TAKE key in --dataset (default: its only take).")
+@click.option("--truth", is_flag=True, help="Joint angles and bone lengths from the take's ground_truth.h5 "
+                                            "(simulated takes) instead of --dataset.")
+@click.option("--frames", "frames_arg", default="",
+              help="Comma-separated frames (dataset rows, or ticks with --truth) to train on "
+                   "(default: the middle of every hold, see --poses).")
+@click.option("--poses", type=click.IntRange(1), default=20, show_default=True,
+              help="Without --frames: this many holds, spread over the take.")
+@click.option("--test-frames", default="",
+              help="Comma-separated frames held out for evaluation (default: every fifth chosen frame).")
+@click.option("--masks", "masks_arg", type=click.Choice(["truth"]), default="truth", show_default=True,
+              help="Hand masks: the labels of a simulated take's ground_truth.h5.")
+@click.option("--iterations", type=click.IntRange(1), default=1000, show_default=True)
+@click.option("--per-bone", type=click.IntRange(1), default=60, show_default=True,
+              help="Initial Gaussians around each of the 20 bones.")
+@_common_options
+def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None, truth: bool, frames_arg: str,
+                 poses: int, test_frames: str, masks_arg: str, iterations: int, per_bone: int, cameras_path: Path,
+                 only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
+                 lpips_weights: Path | None, lpips_net: str, seed: int, output: Path, force: bool) -> None:
+    """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
+    from manus_capture.splat.checkpoint import save_checkpoint
+    from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
+    from manus_capture.splat.takes import (crop_views, hand_frames_from_dataset, hand_frames_from_truth,
+                                           hand_views_from_take, still_frames)
+
+    if truth == (dataset_path is not None):
+        raise click.UsageError("give exactly one of --dataset and --truth")
+    _check_output(output, force)
+    bg = _colour(background)
+    rig = _load_rig(cameras_path, only_cameras)
+    hand = hand_frames_from_truth(take) if truth else hand_frames_from_dataset(dataset_path, dataset_take)
+    frames = _int_list(frames_arg, "--frames") or [int(f) for f in still_frames(hand.angles, count=poses)]
+    if not frames:
+        raise ReconstructInputError(f"{hand.source}: the hand never holds still; choose frames with --frames")
+    test = _int_list(test_frames, "--test-frames") or frames[2::5]
+    frames = list(dict.fromkeys(frames + test))
+    train_rows = [i for i, f in enumerate(frames) if f not in test]
+    if not train_rows:
+        raise click.UsageError("--test-frames holds out every frame")
+    angles, views = hand_views_from_take(take, rig, hand, frames, masks_arg, scale)
+
+    model = HandGaussians.initialize(hand.bone_lengths, per_bone=per_bone, sh_degree=sh_degree, seed=seed)
+    cfg = HandConfig.fast(iterations, sh_degree=sh_degree, background=bg, seed=seed,
+                          lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net)
+    start = time.perf_counter()
+    train_hand(model, angles[train_rows], [crop_views(views[i], crop_margin) for i in train_rows], cfg)
+    elapsed = time.perf_counter() - start
+    save_checkpoint(output, model.gaussians, kind="hand", extra=model.extra_tensors(),
+                    metadata={"calibration": str(cameras_path), "source": str(take), "angles": hand.source,
+                              "frames": ",".join(map(str, frames)), "test_frames": ",".join(map(str, test)),
+                              "scale": str(scale), "background": background})
+    n_views = sum(len(views[i]) for i in train_rows)
+    n_poses = sum(1 for i in train_rows if len(views[i]))
+    summary = f"{output}: {len(model)} Gaussians from {n_poses} poses ({n_views} views), {elapsed:.0f} s"
+    test_rows = [i for i in range(len(frames)) if i not in train_rows]
+    if test_rows:
+        scores = evaluate_hand(model, angles[test_rows], [views[i] for i in test_rows], bg)
+        summary += f"; {len(test_rows)} held-out poses: " + _scores_text(scores)
     click.echo(summary)
 
 

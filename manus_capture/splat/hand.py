@@ -31,11 +31,12 @@ import torch.nn.functional as F
 from dataset_tools.hand.skeleton import BONES, HandSkeleton
 
 from .gaussians import Gaussians
-from .losses import LossWeights, load_lpips, psnr, ssim
+from .losses import LossWeights, load_lpips
 from .rasterize import rasterize
 from .sh import eval_sh
 from .strategy import DensifyStrategy
-from .trainer import LearningRates, Views, decay_means_lr, image_loss, make_optimizer, optimize_step
+from .trainer import (LearningRates, Views, add_scores, decay_means_lr, image_loss, make_optimizer,
+                      optimize_step)
 
 N_BONES = 20
 
@@ -156,6 +157,18 @@ class HandGaussians(torch.nn.Module):
     def __len__(self) -> int:
         return len(self.gaussians)
 
+    @property
+    def opacities(self) -> torch.Tensor:
+        return self.gaussians.opacities
+
+    def pose_batch(self, angles: torch.Tensor) -> torch.Tensor:
+        """Posed centres (T,N,3) for angles (T,26): pose()'s means for many poses at once."""
+        g = self.gaussians
+        angles = torch.as_tensor(angles, dtype=g.means.dtype, device=g.means.device)
+        R, t = self.skeleton.bone_transforms(angles)  # (T,20,3,3), (T,20,3)
+        w = self.skinning_weights()
+        return torch.einsum("nb,tbij,nj->tni", w, R.to(w.dtype), g.means) + torch.einsum("nb,tbj->tnj", w, t.to(w.dtype))
+
     def skinning_weights(self, points: torch.Tensor | None = None) -> torch.Tensor:
         """Weights (N,20) at canonical points (default: the Gaussians' centres), summing to one."""
         points = self.gaussians.means if points is None else points
@@ -219,19 +232,28 @@ class HandConfig:
     chunk_elements: int | None = None
     seed: int = 0
 
+    @classmethod
+    def fast(cls, iterations: int = 400, **changes) -> "HandConfig":
+        """Settings for short CPU runs on capture takes (see ObjectConfig.fast): the initial
+        Gaussians only, the initial skinning weights, SH degree 1, faster colour and scale steps."""
+        base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), densify=None,
+                    skin_lr=0.0, lr=LearningRates(sh0=1e-2, log_scales=1e-2))
+        return cls(**{**base, **changes})
+
 
 def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], config: HandConfig | None = None,
                progress: bool = True) -> list[dict[str, float]]:
     """Fit a MANUS-Hand model to views of the hand in several poses; returns the loss history.
 
     poses (P,26) joint angles; views[p] the calibrated images (with hand masks when known) of
-    pose p. Every step renders one view of one pose. The model is changed in place.
+    pose p (poses without views are passed over). Every step renders one view of one pose. The
+    model is changed in place.
     """
     from tqdm import tqdm
 
     cfg = config or HandConfig()
     gen = torch.Generator().manual_seed(cfg.seed)
-    bg = torch.tensor(cfg.background, dtype=torch.float32)
+    bg = torch.tensor(cfg.background, dtype=torch.float32, device=model.gaussians.means.device)
     targets = [v.targets(bg) for v in views]
     scene_scale = float(model.skeleton.bone_lengths.sum() / 5)  # about one finger's length
     lpips = load_lpips(cfg.lpips_weights, cfg.lpips_net) if cfg.weights.lpips > 0 else None
@@ -242,8 +264,11 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
     strategy = None if cfg.densify is None else replace(cfg.densify, scene_scale=scene_scale)
     history = []
     bar = tqdm(range(1, cfg.iterations + 1), desc="hand", unit="it", file=sys.stderr, disable=not progress)
+    usable = [i for i, v in enumerate(views) if len(v)]
+    if not usable:
+        raise ValueError("train_hand: no pose has a view")
     for step in bar:
-        p = int(torch.randint(len(views), (1,), generator=gen))
+        p = usable[int(torch.randint(len(usable), (1,), generator=gen))]
         v = int(torch.randint(len(views[p]), (1,), generator=gen))
         decay_means_lr(optimizer, cfg.lr, scene_scale, step, cfg.iterations)
         degree = min(cfg.sh_degree, step // cfg.sh_increase_every)
@@ -261,16 +286,16 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
 @torch.no_grad()
 def evaluate_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views],
                   background=(0.0, 0.0, 0.0)) -> dict[str, float]:
-    """Mean PSNR (dB) and SSIM over every view of every given pose."""
-    bg = torch.tensor(background, dtype=torch.float32)
-    scores = {"psnr": [], "ssim": []}
+    """Mean PSNR (dB), SSIM and, with masks, psnr_mask (see trainer.evaluate) over every view of
+    every given pose."""
+    bg = torch.tensor(background, dtype=torch.float32, device=model.gaussians.means.device)
+    scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_mask": []}
     for p, view in enumerate(views):
+        if not len(view):
+            continue
         rgb, _ = model.render(poses[p], view.viewmats, view.Ks, view.width, view.height, bg)
-        pred, target = rgb.clamp(0, 1).permute(0, 3, 1, 2), view.targets(bg).permute(0, 3, 1, 2)
-        for i in range(len(view)):
-            scores["psnr"].append(float(psnr(pred[i:i + 1], target[i:i + 1])))
-            scores["ssim"].append(float(ssim(pred[i:i + 1], target[i:i + 1])))
-    return {k: sum(v) / len(v) for k, v in scores.items()}
+        add_scores(scores, rgb, view, bg)
+    return {k: sum(v) / len(v) for k, v in scores.items() if v}
 
 
 def random_poses(n: int, skeleton: HandSkeleton, generator: torch.Generator, rotation: float = math.pi,

@@ -15,41 +15,46 @@ import math
 import sys
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 import torch
 
 from .gaussians import PARAM_NAMES, Gaussians
 from .losses import LPIPS, LossWeights, isotropy, l1, load_lpips, psnr, ssim
 from .rasterize import rasterize
-from .strategy import DensifyStrategy, nearest_pixels, outside_mask_votes
+from .strategy import DensifyStrategy, nearest_pixels
 
 
 @dataclass
 class Views:
-    """Calibrated views: images (V,H,W,3) in [0,1], Ks (V,3,3), viewmats (V,4,4), masks (V,H,W) or None."""
+    """Calibrated views: images (V,H,W,3) in [0,1], Ks (V,3,3), viewmats (V,4,4), masks (V,H,W) or
+    None, and optionally the camera ids (V,) they came from."""
 
     images: torch.Tensor
     Ks: torch.Tensor
     viewmats: torch.Tensor
     masks: torch.Tensor | None = None
+    ids: tuple[str, ...] | None = None
 
     @classmethod
     def from_rig(cls, images: torch.Tensor, K: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
-                 masks: torch.Tensor | None = None) -> "Views":
+                 masks: torch.Tensor | None = None, ids=None) -> "Views":
         """Views from CameraRig-style K, R, t (any array type; float32 tensors are made)."""
-        K, R, t = (torch.as_tensor(x, dtype=torch.float32) for x in (K, R, t))
+        # np.array copies: CameraRig's arrays are read-only, which torch warns about
+        K, R, t = (x.float() if torch.is_tensor(x) else torch.from_numpy(np.array(x, dtype=np.float32))
+                   for x in (K, R, t))
         viewmats = torch.eye(4).repeat(len(K), 1, 1)
         viewmats[:, :3, :3] = R
         viewmats[:, :3, 3] = t
         images = torch.as_tensor(images, dtype=torch.float32)
         masks = None if masks is None else torch.as_tensor(masks, dtype=torch.bool)
-        return cls(images, K, viewmats, masks)
+        return cls(images, K, viewmats, masks, None if ids is None else tuple(ids))
 
     def __len__(self) -> int:
         return self.images.shape[0]
 
     def to(self, device: str | torch.device) -> "Views":
         return Views(self.images.to(device), self.Ks.to(device), self.viewmats.to(device),
-                     None if self.masks is None else self.masks.to(device))
+                     None if self.masks is None else self.masks.to(device), self.ids)
 
     @property
     def width(self) -> int:
@@ -68,7 +73,8 @@ class Views:
     def subset(self, index) -> "Views":
         index = torch.as_tensor(index, dtype=torch.long)
         return Views(self.images[index], self.Ks[index], self.viewmats[index],
-                     None if self.masks is None else self.masks[index])
+                     None if self.masks is None else self.masks[index],
+                     None if self.ids is None else tuple(self.ids[i] for i in index.tolist()))
 
     def targets(self, background: torch.Tensor) -> torch.Tensor:
         """Images with everything outside the masks set to the background colour."""
@@ -109,6 +115,15 @@ class ObjectConfig:
     chunk_elements: int | None = None
     seed: int = 0
 
+    @classmethod
+    def fast(cls, iterations: int = 400, **changes) -> "ObjectConfig":
+        """Settings for short CPU runs on capture takes (hundreds of steps, not 3DGS's 30k): a fixed
+        set of 3000 half-opaque Gaussians (no densification), SH degree 1 (enough for the view-
+        dependent shading of matte surfaces), 4x faster colour and 2x faster scale steps."""
+        base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), init_points=3000,
+                    init_opacity=0.5, densify=None, lr=LearningRates(sh0=1e-2, log_scales=1e-2))
+        return cls(**{**base, **changes})
+
 
 @dataclass
 class TrainResult:
@@ -136,19 +151,65 @@ def scene_frame(views: Views) -> tuple[torch.Tensor, float, float]:
     return centre.float(), half, max(extent, 1e-6)
 
 
+def in_hull(points: torch.Tensor, views: Views) -> torch.Tensor:
+    """(N,) bool: points that no mask puts on the background and that at least half the views
+    see (in front of the camera and inside the image, which may be a crop around the object)."""
+    flat, seen = nearest_pixels(points, views.viewmats, views.Ks, views.height, views.width)
+    if views.masks is None:
+        return torch.ones(len(points), dtype=torch.bool, device=points.device)
+    background = seen & ~views.masks.reshape(-1)[flat]
+    return (background.sum(0) == 0) & (2 * seen.sum(0) >= len(views))
+
+
+def hull_box(views: Views, levels: int = 3, resolution: int = 48) -> tuple[torch.Tensor, torch.Tensor]:
+    """Corners (lo, hi) of a box around the visual hull of the masks.
+
+    The object may fill a small part of the space the cameras see (an object on a table in a
+    capture cube), where uniform sampling would almost never land inside it: a grid over the
+    whole camera rig is carved, the box shrunk to the surviving cells (plus one cell), and that
+    repeated at finer cells. Without masks: the cube all cameras see (scene_frame).
+    """
+    centre, half, extent = scene_frame(views)
+    centre = centre.to(views.images.device)
+    if views.masks is None:
+        return centre - half, centre + half
+    lo, hi = centre - max(half, extent), centre + max(half, extent)
+    for _ in range(levels):
+        axes = [torch.linspace(float(lo[i]), float(hi[i]), resolution, device=lo.device) for i in range(3)]
+        grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        inside = grid[in_hull(grid, views)]
+        if len(inside) == 0:
+            break
+        cell = (hi - lo) / (resolution - 1)
+        lo, hi = inside.min(0).values - cell, inside.max(0).values + cell
+    return lo, hi
+
+
+def object_scale(views: Views) -> float:
+    """The scene scale of the learning rate of the means and of the densification thresholds.
+
+    3DGS uses the cameras' extent, right when the scene fills the space between them; with
+    masks it is the diagonal of the visual hull's box instead, as an object in a capture cube
+    is a few centimetres across among cameras a metre apart.
+    """
+    if views.masks is None:
+        return scene_frame(views)[2]
+    lo, hi = hull_box(views)
+    return max(float((hi - lo).norm()), 1e-6)
+
+
 def init_points(views: Views, n: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """n points (and their mean colour over the views) in the visual hull of the masks.
 
-    Candidates are drawn uniformly in the cube all cameras see and kept when every view that
-    sees them puts them on the object; without masks every candidate is kept.
+    Candidates are drawn uniformly in hull_box and kept when they are in_hull; without masks
+    every candidate in the cube all cameras see is kept.
     """
-    centre, half, _ = scene_frame(views)
+    lo, hi = hull_box(views)
     kept = []
     count = 0
     for _ in range(50):
-        cand = (centre + (torch.rand(4 * n, 3, generator=generator) * 2 - 1) * half).to(views.images.device)
-        if views.masks is not None:
-            cand = cand[outside_mask_votes(cand, views.viewmats, views.Ks, views.masks) == 0]
+        cand = lo + torch.rand(4 * n, 3, generator=generator).to(lo.device) * (hi - lo)
+        cand = cand[in_hull(cand, views)]
         kept.append(cand)
         count += len(cand)
         if count >= n:
@@ -220,18 +281,31 @@ def render(gaussians: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, width
 @torch.no_grad()
 def evaluate(gaussians: Gaussians, views: Views, background=(0.0, 0.0, 0.0),
              lpips: LPIPS | None = None) -> dict[str, float]:
-    """Mean PSNR (dB), SSIM and, with an LPIPS module, LPIPS of the model over held-out views."""
+    """Mean scores of the model over held-out views: PSNR (dB) and SSIM of the whole image
+    (with masks: the image composited on the background outside the mask, as trained), with
+    masks also `psnr_mask`, the PSNR over the mask's pixels alone, and, with an LPIPS module, LPIPS."""
     bg = torch.as_tensor(background, dtype=views.images.dtype, device=views.images.device)
-    targets = views.targets(bg)
-    scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "lpips": []}
+    scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_mask": [], "lpips": []}
     for i in range(len(views)):
         rgb, _ = render(gaussians, views.viewmats[i:i + 1], views.Ks[i:i + 1], views.width, views.height, bg)
-        p, t = rgb.clamp(0, 1).permute(0, 3, 1, 2), targets[i:i + 1].permute(0, 3, 1, 2)
+        add_scores(scores, rgb, views.subset([i]), bg, lpips)
+    return {k: sum(v) / len(v) for k, v in scores.items() if v}
+
+
+def add_scores(scores: dict[str, list[float]], rendered: torch.Tensor, views: "Views", background: torch.Tensor,
+               lpips: LPIPS | None = None) -> None:
+    """Append the scores (see evaluate) of renders (V,H,W,3) of `views` to the lists in `scores`."""
+    pred = rendered.clamp(0, 1).permute(0, 3, 1, 2)
+    target = views.targets(background).permute(0, 3, 1, 2)
+    for i in range(len(views)):
+        p, t = pred[i:i + 1], target[i:i + 1]
         scores["psnr"].append(float(psnr(p, t)))
         scores["ssim"].append(float(ssim(p, t)))
+        if views.masks is not None and bool(views.masks[i].any()):
+            m = views.masks[i][None, None].expand_as(p)
+            scores["psnr_mask"].append(float(psnr(p[m], t[m])))
         if lpips is not None:
             scores["lpips"].append(float(lpips(p, t).mean()))
-    return {k: sum(v) / len(v) for k, v in scores.items() if v}
 
 
 def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussians | None = None,
@@ -244,7 +318,7 @@ def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussia
     torch.manual_seed(cfg.seed)
     bg = torch.tensor(cfg.background, dtype=views.images.dtype, device=views.images.device)
     targets = views.targets(bg)
-    _, _, scene_scale = scene_frame(views)
+    scene_scale = object_scale(views)
     if init is None:
         points, colours = init_points(views, cfg.init_points, gen)
         gaussians = Gaussians.from_points(points, colours, cfg.sh_degree, opacity=cfg.init_opacity)

@@ -108,7 +108,7 @@ class HandModel:
     def _build_surface(self) -> None:
         pts, nrm, cap = [], [], []
         for m, (a, b, r) in enumerate(zip(self.capsule_rest_a, self.capsule_rest_b, self.capsule_radius)):
-            p, n = _capsule_surface(a, b, r, self.spacing)
+            p, n = shapes.capsule_surface(a, b, r, self.spacing)
             pts.append(p)
             nrm.append(n)
             cap.append(np.full(len(p), m))
@@ -171,32 +171,6 @@ class HandModel:
         _, nearest = cKDTree(surface).query(np.asarray(points_world, dtype=np.float64))
         rgb[np.asarray(paint, dtype=bool)[nearest]] = PAINT_RGB.astype(np.float32)
         return rgb
-
-
-def _capsule_surface(a: np.ndarray, b: np.ndarray, r: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points (K,3) and outward normals about `spacing` apart on one capsule: staggered rings on
-    the cylinder, a Fibonacci lattice on the two end caps."""
-    axis = b - a
-    length = float(np.linalg.norm(axis))
-    e = axis / length
-    u = np.cross(e, [0.0, 0.0, 1.0] if abs(e[2]) < 0.9 else [1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(e, u)
-    n_ring = max(1, int(round(length / spacing)))
-    n_circ = max(6, int(round(2 * np.pi * r / spacing)))
-    z = (np.arange(n_ring) + 0.5) * length / n_ring
-    phi = 2 * np.pi * (np.arange(n_circ)[None, :] + 0.5 * (np.arange(n_ring)[:, None] % 2)) / n_circ
-    n_side = (np.cos(phi)[..., None] * u + np.sin(phi)[..., None] * v).reshape(-1, 3)
-    p_side = a + np.repeat(z, n_circ)[:, None] * e + r * n_side
-    n_sph = max(8, int(round(4 * np.pi * r * r / spacing ** 2)))
-    k = np.arange(n_sph) + 0.5
-    cos_t = 1 - 2 * k / n_sph
-    sin_t = np.sqrt(1 - cos_t ** 2)
-    ang = np.pi * (1 + 5 ** 0.5) * k
-    n_cap = (cos_t[:, None] * e + sin_t[:, None] * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v))
-    low = n_cap @ e < 0
-    p_cap = np.where(low[:, None], a, b) + r * n_cap
-    return np.concatenate([p_side, p_cap]), np.concatenate([n_side, n_cap])
 
 
 def make_hand(subject: str = "s01", spacing: float = 0.0025) -> HandModel:

@@ -1,0 +1,103 @@
+"""Gaussian models of the hand and the object from a session's takes, on any subset of cameras.
+
+The camera ablation of evaluate (and of the demo) rebuilds both models from 5, 10, 20 or all
+cameras: everything they are trained from is gathered once (frames, masks, poses) and each
+`train` call picks its cameras.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PSNR
+
+
+class BuildError(ValueError):
+    """The takes cannot give a model (exit code 2)."""
+
+    exit_code = 2
+
+
+@dataclass
+class ModelInputs:
+    """The calibrated rig, the hand take with annotate's poses and hand masks, the object take
+    with its masks, and the training settings."""
+
+    rig: object
+    hand_take: Path
+    object_take: Path
+    hand_frames: object           # splat.takes.HandFrames
+    train_rows: np.ndarray
+    test_rows: np.ndarray
+    hand_masks: np.ndarray        # (T,C,H,W) per frame group of the hand take, rig order
+    object_masks: np.ndarray      # (C,H,W), rig order
+    object_iterations: int = 400
+    hand_iterations: int = 400
+    scale: float = 1.0
+    seed: int = 0
+
+    @classmethod
+    def prepare(cls, rig, dataset: Path, hand_take: Path, object_take: Path, background_take: Path,
+                poses: int = 20, object_masks: np.ndarray | None = None, **settings) -> "ModelInputs":
+        """Segment the hand take (and the object take unless its masks are given) against the
+        empty cube, and choose `poses` training poses of the hand spread over the take.
+
+        The poses are frame groups spread over the take, not only its holds: with triggered
+        cameras (exposures within a millisecond) every group shows one pose in every view.
+        """
+        from dataset_tools.annotate import take_key
+        from dataset_tools.segmentation.takes import segment_take
+        from manus_capture.splat.takes import hand_frames_from_dataset
+
+        frames = hand_frames_from_dataset(dataset, take_key(hand_take))
+        fitted = np.flatnonzero(np.isfinite(frames.angles).all(axis=1))
+        if len(fitted) < HELD_OUT_POSES + 2:
+            raise BuildError(f"{hand_take}: only {len(fitted)} frames with a fitted hand in {dataset}")
+        rows = fitted[np.unique(np.linspace(0, len(fitted) - 1, poses + HELD_OUT_POSES).round().astype(int))]
+        test = rows[1::max(len(rows) // HELD_OUT_POSES, 1)][:HELD_OUT_POSES]
+        seg = segment_take(hand_take, rig, background_take, None)
+        hand_masks = seg["hand"][:, [seg["cameras"].index(cam) for cam in rig.ids]]
+        if object_masks is None:
+            seg = segment_take(object_take, rig, background_take, object_take)
+            object_masks = seg["object"][0][[seg["cameras"].index(cam) for cam in rig.ids]]
+        return cls(rig, Path(hand_take), Path(object_take), frames, np.setdiff1d(rows, test), test, hand_masks,
+                   object_masks, **settings)
+
+    def train(self, cams: np.ndarray, evaluate: bool = False):
+        """(hand model, object Gaussians, metrics) trained on the cameras `cams` (indices into rig);
+        with `evaluate`, held-out-pose PSNR of the hand and training-view PSNR of the object."""
+        import torch
+
+        from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
+        from manus_capture.splat.takes import crop_views, hand_views_from_take, object_views_from_take
+        from manus_capture.splat.trainer import ObjectConfig, train_object
+        from manus_capture.splat.trainer import evaluate as evaluate_object
+
+        cams = np.asarray(cams)
+        sub = self.rig.subset([self.rig.ids[i] for i in cams])
+        torch.manual_seed(self.seed)
+        # CPU settings (ObjectConfig.fast, HandConfig.fast): hundreds of steps on windows around
+        # the masks, scored on the whole views
+        views = object_views_from_take(self.object_take, sub, masks=self.object_masks[cams], scale=self.scale)
+        obj = train_object(crop_views(views), ObjectConfig.fast(self.object_iterations, seed=self.seed),
+                           progress=False).gaussians
+        poses, hand_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.train_rows,
+                                                 masks=self.hand_masks[self.train_rows][:, cams], scale=self.scale)
+        hand = HandGaussians.initialize(self.hand_frames.bone_lengths, per_bone=60, sh_degree=1, seed=self.seed)
+        train_hand(hand, poses, [crop_views(v) for v in hand_views],
+                   HandConfig.fast(self.hand_iterations, seed=self.seed), progress=False)
+        metrics = {}
+        if evaluate:
+            test_poses, test_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.test_rows,
+                                                          masks=self.hand_masks[self.test_rows][:, cams],
+                                                          scale=self.scale)
+            hand_scores, object_scores = evaluate_hand(hand, test_poses, test_views), evaluate_object(obj, views)
+            metrics = {"hand_psnr_heldout_poses_db": hand_scores["psnr"],
+                       "hand_psnr_heldout_on_mask_db": hand_scores["psnr_mask"],
+                       "object_psnr_train_views_db": object_scores["psnr"],
+                       "object_psnr_on_mask_db": object_scores["psnr_mask"],
+                       "hand_gaussians": len(hand), "object_gaussians": len(obj)}
+        return hand, obj, metrics

@@ -1,0 +1,75 @@
+"""`manus-capture contacts`: hand-object contact maps of a take from the Gaussian models."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import click
+
+
+@click.command("contacts", context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("dataset", type=click.Path(path_type=Path, exists=True, dir_okay=False))
+@click.option("--take", "key", required=True, metavar="SESSION/TAKE", help="The grasp take's group in DATASET.")
+@click.option("--hand", "hand_path", required=True, type=click.Path(path_type=Path, exists=True, dir_okay=False),
+              help="MANUS-Hand checkpoint (reconstruct hand).")
+@click.option("--object", "object_path", required=True, type=click.Path(path_type=Path, exists=True, dir_okay=False),
+              help="Object checkpoint (reconstruct object).")
+@click.option("--tau", type=click.FloatRange(0, min_open=True), default=0.004, show_default=True,
+              help="Contact distance (m).")
+@click.option("--soft", is_flag=True, help="Soft contact 1 - d/tau instead of 0/1.")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+              help="Neighbour search: KD-tree on the CPU or chunked distances on CUDA.")
+@click.option("--calib", type=click.Path(path_type=Path), default=None,
+              help="With --renders: the cameras to render the contact map into.")
+@click.option("--renders", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder for CAM.png: the accumulated contact on the hand at its firmest grip.")
+def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: float, soft: bool,
+            device: str, calib: Path | None, renders: Path | None) -> None:
+    """Contacts of the hand of take KEY with the object: for every frame, each hand Gaussian's
+    nearest object Gaussian (and the reverse), contact below --tau; instantaneous maps (T,G) and
+    the accumulated map (G,) into DATASET under KEY/contacts (docs/contacts.md)."""
+    import numpy as np
+    import torch
+
+    from dataset_tools.dataset import read_dataset
+    from dataset_tools.fileio import write_atomic
+    from manus_capture.contacts import contact_image, model_contacts, write_contacts
+    from manus_capture.evaluate import EvaluateError, render_contacts
+    from manus_capture.splat.checkpoint import load_checkpoint
+    from manus_capture.splat.hand import HandGaussians
+
+    if (calib is None) != (renders is None):
+        raise click.UsageError("--renders and --calib go together")
+    start = time.perf_counter()
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    data = read_dataset(dataset)
+    if key not in data:
+        raise EvaluateError(f"{dataset}: no take {key!r} (takes: {', '.join(data.takes) or 'none'})")
+    angles = data[key].joint_angles
+    gaussians, extra, meta = load_checkpoint(hand_path)
+    if meta.get("kind") != "hand":
+        raise EvaluateError(f"{hand_path}: a {meta.get('kind')!r} checkpoint, not a hand")
+    hand = HandGaussians.from_checkpoint(gaussians, extra)
+    obj, _, meta = load_checkpoint(object_path)
+    if meta.get("kind") != "object":
+        raise EvaluateError(f"{object_path}: a {meta.get('kind')!r} checkpoint, not an object")
+    maps = model_contacts(hand, angles, obj, tau, soft, device)
+    write_contacts(dataset, key, maps, {"contact_hand_model": str(hand_path), "contact_object_model": str(object_path)})
+    if renders is not None:
+        from tqdm import tqdm
+
+        from dataset_tools.calibration.formats import load_cameras
+        import cv2
+
+        rig = load_cameras(calib)
+        hold = int(np.argmax(maps.instant.sum(axis=1)))
+        for i in tqdm(range(len(rig)), desc="render", unit="view", file=sys.stderr):
+            value, alpha = render_contacts(hand, angles[hold], maps.accumulated, rig.subset([rig.ids[i]]))
+            write_atomic(renders / f"{rig.ids[i]}.png", cv2.imencode(".png", contact_image(value[0], alpha[0]))[1].tobytes())
+    touched = int((maps.accumulated > 0.5).sum())
+    click.echo(f"contacts: {key}: {len(angles)} frames, {touched}/{len(hand)} hand Gaussians and "
+               f"{int((maps.object_accumulated > 0.5).sum())}/{len(obj)} object Gaussians in contact "
+               f"(tau {tau * 1000:g} mm) -> {dataset} ({time.perf_counter() - start:.1f} s)")

@@ -1,0 +1,169 @@
+"""Hand-object contact from Gaussians: nearest neighbours between the posed hand and the object.
+
+MANUS defines contact on the Gaussians themselves: a hand Gaussian touches the object when the
+nearest object Gaussian is closer than tau (4 mm), and the reverse gives the contact on the
+object. Over a take the instantaneous maps (T,G) accumulate by maximum into one map (G,) per
+hand Gaussian, which is what the paint on the subject's hand records.
+
+Anything with `pose(angles) -> {"means", "covars"}` and `opacities` is a hand model here: the
+trained MANUS-Hand (splat.hand.HandGaussians) and the capsule template of the baseline
+(template.CapsuleTemplate) are scored by the same code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import torch
+
+TAU_M = 0.004
+CHUNK = 1 << 12  # hand points per torch.cdist block on the GPU: 4096 x M distances at a time
+
+
+class PosedModel(Protocol):
+    """A hand model the contact and rendering code can pose."""
+
+    @property
+    def opacities(self) -> torch.Tensor: ...
+
+    def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]: ...
+
+
+@dataclass(frozen=True)
+class ContactMaps:
+    """Contact values in [0,1]: hand `instant` (T,G), `accumulated` (G,) and the same for the
+    object (`object_instant` (T,M), `object_accumulated` (M,)); `distance` (T,G) metres from
+    each hand Gaussian to its nearest object Gaussian (inf beyond tau on the CPU path)."""
+
+    instant: np.ndarray
+    accumulated: np.ndarray
+    object_instant: np.ndarray
+    object_accumulated: np.ndarray
+    distance: np.ndarray
+    tau: float
+    soft: bool
+
+
+def contact_value(distance: np.ndarray, tau: float = TAU_M, soft: bool = False) -> np.ndarray:
+    """1 below tau (binary) or 1 - d/tau clipped to [0,1] (soft); 0 at or beyond tau."""
+    d = np.asarray(distance, dtype=np.float64)
+    if soft:
+        return np.clip(1.0 - d / tau, 0.0, 1.0).astype(np.float32)
+    return (d < tau).astype(np.float32)
+
+
+def posed_means(model: PosedModel, angles: np.ndarray | torch.Tensor) -> np.ndarray:
+    """Posed centres (T,G,3) of a hand model for joint angles (T,26)."""
+    angles = torch.as_tensor(np.asarray(angles, dtype=np.float32))
+    with torch.no_grad():
+        if hasattr(model, "pose_batch"):
+            return model.pose_batch(angles).cpu().numpy()
+        return np.stack([model.pose(a)["means"].cpu().numpy() for a in angles])
+
+
+def _cpu_pairs(hand: np.ndarray, obj: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All (hand index, object index, distance) pairs closer than tau, through two KD-trees."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(hand).sparse_distance_matrix(cKDTree(obj), tau, output_type="ndarray")
+    return pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), pairs["v"]
+
+
+def _cuda_pairs(hand: np.ndarray, obj: np.ndarray, tau: float, device: str):
+    """The same pairs from chunked torch.cdist on the GPU (no tree; the M object points stay resident)."""
+    o = torch.as_tensor(obj, dtype=torch.float32, device=device)
+    hi, oi, dist = [], [], []
+    for start in range(0, len(hand), CHUNK):
+        h = torch.as_tensor(hand[start:start + CHUNK], dtype=torch.float32, device=device)
+        d = torch.cdist(h, o)
+        i, j = torch.nonzero(d < tau, as_tuple=True)
+        hi.append((i + start).cpu())
+        oi.append(j.cpu())
+        dist.append(d[i, j].double().cpu())
+    return torch.cat(hi).numpy(), torch.cat(oi).numpy(), torch.cat(dist).numpy()
+
+
+def hand_object_contacts(model: PosedModel, angles: np.ndarray, object_means: np.ndarray, tau: float = TAU_M,
+                         soft: bool = False, device: str = "cpu") -> ContactMaps:
+    """Contact maps of a hand model posed by `angles` (T,26) against static object points (M,3):
+    each posed hand point's nearest object point, and the reverse, contact below tau.
+
+    All frames go through one neighbour search, the hand's T*G posed points against the object,
+    so the object's per-frame map comes from the same pairs.
+    """
+    if tau <= 0:
+        raise ValueError(f"tau must be positive, got {tau}")
+    angles = np.atleast_2d(np.asarray(angles, dtype=np.float64))
+    finite = np.all(np.isfinite(angles), axis=1)
+    means = posed_means(model, np.where(finite[:, None], angles, 0.0))
+    T, G = means.shape[:2]
+    object_means = np.asarray(object_means, dtype=np.float64)
+    hand_flat = means.reshape(-1, 3)
+    if str(device).startswith("cuda"):
+        i, j, v = _cuda_pairs(hand_flat, object_means, tau, device)
+    else:
+        i, j, v = _cpu_pairs(hand_flat, object_means, tau)
+    # frames without a fitted hand have no contact, not the rest pose's
+    keep = finite[i // G]
+    i, j, v = i[keep], j[keep], v[keep]
+    distance = np.full(T * G, np.inf)
+    np.minimum.at(distance, i, v)
+    distance = distance.reshape(T, G)
+    obj_distance = np.full((T, len(object_means)), np.inf)
+    np.minimum.at(obj_distance, (i // G, j), v)
+    instant = contact_value(distance, tau, soft)
+    object_instant = contact_value(obj_distance, tau, soft)
+    return ContactMaps(instant, instant.max(axis=0, initial=0.0), object_instant,
+                       object_instant.max(axis=0, initial=0.0), distance.astype(np.float32), tau, soft)
+
+
+def model_contacts(hand, angles: np.ndarray, obj, tau: float = TAU_M, soft: bool = False,
+                   device: str = "cpu") -> ContactMaps:
+    """hand_object_contacts of a hand model against object Gaussians (splat.gaussians.Gaussians)."""
+    return hand_object_contacts(hand, angles, obj.means.detach().cpu().numpy(), tau, soft, device)
+
+
+def render_values(model: PosedModel, angles: np.ndarray, values: np.ndarray, viewmats: torch.Tensor,
+                  Ks: torch.Tensor, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Splat a per-Gaussian value (G,) as colour of the posed hand into C cameras.
+
+    Returns (value (C,H,W) of the visible surface, i.e. composited value over alpha, and
+    alpha (C,H,W)); pixels the hand does not cover have alpha 0 and value 0.
+    """
+    from .splat.rasterize import rasterize
+
+    with torch.no_grad():
+        posed = model.pose(torch.as_tensor(np.asarray(angles, dtype=np.float32)))
+        colours = torch.as_tensor(np.asarray(values, dtype=np.float32))[:, None]
+        colours = colours.to(posed["means"].dtype).expand(-1, 1)
+        out, alpha = rasterize(posed["means"], None, None, model.opacities, colours, viewmats, Ks, width, height,
+                               covars=posed["covars"])
+    alpha = alpha[..., 0].cpu().numpy()
+    value = np.where(alpha > 1e-3, out[..., 0].cpu().numpy() / np.maximum(alpha, 1e-3), 0.0)
+    return value.astype(np.float32), alpha.astype(np.float32)
+
+
+def contact_image(value: np.ndarray, alpha: np.ndarray, image: np.ndarray | None = None) -> np.ndarray:
+    """A BGR uint8 picture of a rendered contact map: the hand in grey, contact from yellow to red,
+    over `image` (H,W,3 BGR) when given."""
+    value = np.clip(value, 0.0, 1.0)[..., None]
+    grey = np.array([170.0, 170.0, 170.0])
+    hot = np.stack([np.zeros_like(value[..., 0]), 220.0 * (1.0 - value[..., 0]), np.full_like(value[..., 0], 255.0)],
+                   axis=-1)
+    hand = np.where(value > 0.0, hot, grey)
+    base = np.zeros(value.shape[:2] + (3,)) if image is None else image.astype(np.float64)
+    a = alpha[..., None]
+    return np.clip(base * (1.0 - a) + hand * a, 0, 255).astype(np.uint8)
+
+
+def write_contacts(path, key: str, maps: ContactMaps, attrs: dict) -> None:
+    """Store a take's contact maps in DATASET.h5 (group `key`/contacts, compressed), atomically."""
+    from dataset_tools.dataset import add_arrays
+
+    add_arrays(path, key, {"contacts/instant": maps.instant.astype(np.float16),
+                           "contacts/accumulated": maps.accumulated,
+                           "contacts/object_instant": maps.object_instant.astype(np.float16),
+                           "contacts/object_accumulated": maps.object_accumulated},
+               {"contact_tau_m": maps.tau, "contact_soft": maps.soft, **attrs})

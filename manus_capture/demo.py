@@ -1,0 +1,407 @@
+"""The whole MANUS capture pipeline on the simulated rig, scored against its ground truth.
+
+`run_demo` records a session (calibration, hand, object, grasp and canonical takes) with the
+simulated cube, then runs every stage the way a lab would on real recordings: sync reports,
+calibrate, annotate, segment, reconstruct (object and MANUS-Hand), contacts and evaluate. Each
+stage is scored against ground_truth.h5, and the camera ablation retrains the models on 5, 10,
+20 and all cameras. Outputs in DIR: session/, calib/, DATASET.h5, models/, images/,
+summary.json and report.html.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dataset_tools.fileio import write_atomic
+
+from .evaluate import MIN_PAINT_PX
+
+SURFACE_BAND_M = 0.003    # Gaussians this close to the true hand surface are scored on its contact
+
+TAKES = (("calibration", "00-calibration"), ("hand", "01-hand"), ("object", "02-object"),
+         ("grasp", "03-grasp1"), ("canonical", "04-canonical1"))
+
+
+class DemoError(RuntimeError):
+    """A demo stage failed (exit code 1): the message names the stage."""
+
+    exit_code = 1
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """Sizes of the demo. The defaults fit a laptop: minutes on two cores."""
+
+    cameras: int = 24
+    resolution: tuple[int, int] = (320, 180)
+    fps: float = 30.0
+    subject: str = "s01"
+    object: str = "mug"
+    durations: dict = field(default_factory=lambda: {"calibration": 0.1, "hand": 2.0, "object": 0.1,
+                                                     "grasp": 2.0, "canonical": 0.1})
+    views: tuple[int, ...] = (5, 10, 20, 0)        # camera ablation; 0 = all cameras
+    eval_views: int = 10
+    object_iterations: int = 400
+    hand_iterations: int = 400
+    hand_frames: int = 20
+    scale: float = 1.0
+    tau: float = 0.004
+    seed: int = 0
+    true_calibration: bool = False                  # skip calibrate and use the simulator's cameras
+
+
+@dataclass
+class Stage:
+    name: str
+    seconds: float
+    metrics: dict
+
+
+class Demo:
+    """One demo run: its folder, its configuration and the stages done so far."""
+
+    def __init__(self, out: Path, config: DemoConfig, say: Callable[[str], None] = print) -> None:
+        self.out = Path(out)
+        self.config = config
+        self.say = say
+        self.stages: list[Stage] = []
+        self.session = self.out / "session"
+        self.calib = self.out / "calib"
+        self.dataset = self.out / "DATASET.h5"
+        self.models = self.out / "models"
+        self.images = self.out / "images"
+        self.take = {kind: self.session / name for kind, name in TAKES}
+        self.summary: dict = {}
+
+    def stage(self, name: str, fn: Callable[[], dict]) -> dict:
+        self.say(f"[{len(self.stages) + 1}] {name} ...")
+        start = time.perf_counter()
+        try:
+            metrics = fn()
+        except Exception as exc:
+            raise DemoError(f"demo stage {name!r} failed: {exc}") from exc
+        stage = Stage(name, time.perf_counter() - start, metrics)
+        self.stages.append(stage)
+        shown = ", ".join(f"{k} {_fmt(v)}" for k, v in metrics.items() if not isinstance(v, (dict, list)))
+        self.say(f"    {shown} ({stage.seconds:.1f} s)")
+        return metrics
+
+    # ------------------------------------------------------------------ stages
+
+    def record(self) -> dict:
+        from rig.layouts import make_rig
+        from rig.recorder import record_take
+        from rig.session import with_sim_subject
+
+        c = self.config
+        rig = make_rig("cube53", cameras=c.cameras, resolution=c.resolution, fps=c.fps, sync="software-trigger",
+                       seed=c.seed)
+        self.rig_config = with_sim_subject(rig, obj=c.object, paint=True, subject=c.subject)
+        frames = 0
+        for kind, name in TAKES:
+            result = record_take(self.rig_config, self.session, name, kind, c.durations[kind], force=True,
+                                 subject=c.subject, obj=c.object, use_leds=False, progress=False,
+                                 label_frames=[1] if kind in ("object", "canonical") else [])
+            if result.status != "complete":
+                raise DemoError(f"take {name}: {result.status} ({result.reason})")
+            frames += result.frames
+        return {"takes": len(TAKES), "cameras": c.cameras, "frames": frames}
+
+    def sync(self) -> dict:
+        import h5py
+
+        from dataset_tools.sync import sync_take
+
+        found, true_drops, spreads = 0, 0, []
+        for kind, _ in TAKES:
+            report = sync_take(self.take[kind], force=True, optical=False)
+            with h5py.File(self.take[kind] / "ground_truth.h5") as gt:
+                true_drops += int(gt["frames/dropped"][()].sum())
+            found += sum(cam["frames_dropped"] for cam in report["cameras"].values())
+            if report["spread_ms"]["p95"] is not None:
+                spreads.append(report["spread_ms"]["p95"])
+        return {"drops_found": found, "drops_true": true_drops, "spread_p95_ms": max(spreads, default=float("nan"))}
+
+    def calibrate(self) -> dict:
+        from dataset_tools.calibration.formats import load_cameras
+        from dataset_tools.cameras import CameraRig
+
+        truth = self._true_rig()
+        if self.config.true_calibration:
+            self.calib.mkdir(parents=True, exist_ok=True)
+            truth.save(self.calib / "cameras.json")
+            return {"source": "simulator (--true-calibration)"}
+        from dataset_tools.calibration.rig import calibrate_rig
+
+        # the simulated cameras come with their lens calibration (as a lab's cameras would from an
+        # intrinsics session with a board); their poses come from the tags
+        intrinsics = CameraRig(truth.ids, truth.K, truth.dist, np.tile(np.eye(3), (len(truth), 1, 1)),
+                               np.zeros((len(truth), 3)), truth.size)
+        result = calibrate_rig(take=self.take["calibration"], tags=self.session / "tags.json", method="tags",
+                               intrinsics=intrinsics, output=self.calib, force=True)
+        rig = load_cameras(self.calib / "cameras.json")
+        err = camera_errors(rig, truth)
+        return {"centre_err_mm_median": float(np.median(err["centre_mm"])), "centre_err_mm_max": float(err["centre_mm"].max()),
+                "rotation_err_deg_max": float(err["rotation_deg"].max()), "reprojection_rms_px": result.rms_px}
+
+    def _true_rig(self):
+        import h5py
+
+        from dataset_tools.cameras import CameraRig
+
+        with h5py.File(self.take["calibration"] / "ground_truth.h5") as gt:
+            g = gt["cameras"]
+            ids = tuple(i.decode() if isinstance(i, bytes) else str(i) for i in g["ids"][()])
+            return CameraRig(ids, g["K"][()], g["dist"][()], g["R"][()], g["t"][()], g["size"][()])
+
+    def annotate(self) -> dict:
+        from dataset_tools.annotate import AnnotateOptions, annotate, take_key
+        from dataset_tools.dataset import read_dataset
+
+        takes = [self.take[k] for k in ("hand", "grasp", "canonical")]
+        summary = annotate(takes, self.calib, self.dataset, AnnotateOptions(keypoints="simulated"), force=True)
+        if summary.failed:
+            raise DemoError(f"annotate failed: {summary.failed}")
+        data = read_dataset(self.dataset)
+        grasp = data[take_key(self.take["grasp"])]
+        truth = self._truth_at_groups(self.take["grasp"], grasp.frame_ns)
+        fitted = grasp.fitted_joints()
+        tri = np.linalg.norm(grasp.keypoints3d - truth["joints3d"], axis=-1)
+        fit = np.linalg.norm(fitted - truth["joints3d"], axis=-1)
+        ang = np.degrees(grasp.joint_angles[:, 6:] - truth["joint_angles"][:, 6:])
+        return {"frames": len(grasp.frame_ns), "triangulated_mpjpe_mm": 1000 * float(np.nanmean(tri)),
+                "fitted_mpjpe_mm": 1000 * float(np.nanmean(fit)),
+                "finger_angle_rms_deg": float(np.sqrt(np.nanmean(ang ** 2))),
+                "bone_length_err_mm": 1000 * float(np.abs(grasp.bone_lengths - truth["bone_lengths"]).max())}
+
+    def _truth_at_groups(self, take: Path, frame_ns: np.ndarray) -> dict:
+        import h5py
+
+        with h5py.File(take / "ground_truth.h5") as gt:
+            tick = np.round((frame_ns - gt.attrs["t0_ns"]) * float(gt.attrs["fps"]) / 1e9).astype(int)
+            tick = np.clip(tick, 0, len(gt["hand/joints3d"]) - 1)
+            return {"joints3d": gt["hand/joints3d"][()][tick], "joint_angles": gt["hand/joint_angles"][()][tick],
+                    "bone_lengths": gt["hand/bone_lengths"][()]}
+
+
+    def segment(self) -> dict:
+        import h5py
+
+        from dataset_tools.annotate import take_key
+        from dataset_tools.calibration.formats import load_cameras
+        from dataset_tools.segmentation.takes import segment_take, write_masks
+
+        rig = load_cameras(self.calib)
+        background, obj = self.take["calibration"], self.take["object"]
+        metrics = {}
+        for kind in ("object", "canonical"):
+            result = segment_take(self.take[kind], rig, background, obj)
+            write_masks(self.dataset, take_key(self.take[kind]), result, {"segmentation_background": str(background)})
+            order = [result["cameras"].index(c) for c in rig.ids]
+            with h5py.File(self.take[kind] / "ground_truth.h5") as gt:
+                labels = gt["labels/image"][:, 0]
+            if kind == "object":
+                self.object_masks = result["object"][0][order]
+                metrics["object_iou"] = _iou(self.object_masks, labels == 2)
+            else:
+                self.paint = result["paint"][order]
+                self.true_paint = labels == 3
+                seen = self.true_paint.reshape(len(labels), -1).sum(1) >= MIN_PAINT_PX
+                metrics["hand_iou"] = _iou(result["hand"][0][order], (labels == 1) | (labels == 3))
+                metrics["paint_iou"] = _iou(self.paint[seen], self.true_paint[seen])
+                metrics["paint_views"] = int(seen.sum())
+        return metrics
+
+
+    def reconstruct(self) -> dict:
+        """MANUS-Hand from the hand take and object Gaussians from the object take, on every
+        camera; checkpoints in models/."""
+        from dataset_tools.calibration.formats import load_cameras
+        from manus_capture.builder import ModelInputs
+        from manus_capture.splat.checkpoint import save_checkpoint
+
+        c = self.config
+        self.rig = load_cameras(self.calib)
+        self.inputs = ModelInputs.prepare(self.rig, self.dataset, self.take["hand"], self.take["object"],
+                                          self.take["calibration"], poses=c.hand_frames,
+                                          object_masks=self.object_masks, object_iterations=c.object_iterations,
+                                          hand_iterations=c.hand_iterations, scale=c.scale, seed=c.seed)
+        self.hand, self.object, metrics = self.inputs.train(np.arange(len(self.rig)), evaluate=True)
+        self.models.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(self.models / "hand.safetensors", self.hand.gaussians, kind="hand",
+                        extra=self.hand.extra_tensors(), metadata={"source": str(self.take["hand"])})
+        save_checkpoint(self.models / "object.safetensors", self.object, kind="object",
+                        metadata={"source": str(self.take["object"])})
+        return metrics
+
+    def contacts(self) -> dict:
+        """Contacts of the grasp take (filtered joint angles) against the object, into DATASET.h5;
+        scored on the true contact of the simulated hand's surface."""
+        import h5py
+        from scipy.spatial import cKDTree
+
+        from dataset_tools.annotate import take_key
+        from dataset_tools.dataset import read_dataset
+        from manus_capture.contacts import model_contacts, write_contacts
+
+        key = take_key(self.take["grasp"])
+        grasp = read_dataset(self.dataset)[key]
+        self.grasp_angles = grasp.joint_angles
+        maps = model_contacts(self.hand, self.grasp_angles, self.object, self.config.tau)
+        write_contacts(self.dataset, key, maps, {"contact_hand_model": str(self.models / "hand.safetensors"),
+                                                 "contact_object_model": str(self.models / "object.safetensors")})
+        self.maps = maps
+        # the truth lives on the simulated hand's surface points: carry it to each Gaussian near
+        # the surface (in the canonical, rest-pose space both share)
+        with h5py.File(self.take["grasp"] / "ground_truth.h5") as gt:
+            points, truth = gt["contact/points_rest"][()], gt["contact/accumulated"][()]
+        dist, nearest = cKDTree(points).query(self.hand.gaussians.means.detach().numpy())
+        surface = dist < SURFACE_BAND_M
+        pred = maps.accumulated[surface] > 0.5
+        true = truth[nearest[surface]]
+        return {"hand_gaussians_in_contact": int((maps.accumulated > 0.5).sum()),
+                "object_gaussians_in_contact": int((maps.object_accumulated > 0.5).sum()),
+                "gaussian_contact_iou": float((pred & true).sum() / max((pred | true).sum(), 1))}
+
+    def evaluate(self) -> dict:
+        """Contact against the segmented paint in the canonical take's views; the capsule baseline;
+        the camera ablation (models retrained on fewer cameras)."""
+        from dataset_tools.annotate import take_key
+        from dataset_tools.dataset import read_dataset
+        from manus_capture.contacts import model_contacts
+        from manus_capture.evaluate import canonical_pose, pick_views, score_contacts, spread_cameras
+        from manus_capture.template import capsule_template
+
+        c = self.config
+        canonical = canonical_pose(read_dataset(self.dataset)[take_key(self.take["canonical"])].joint_angles)
+        views = pick_views(self.paint, c.eval_views)
+        ours, pred = score_contacts(self.hand, canonical, self.maps.accumulated, self.rig, self.paint, views)
+        true_paint, _ = score_contacts(self.hand, canonical, self.maps.accumulated, self.rig, self.true_paint, views)
+        template = capsule_template(self.inputs.hand_frames.bone_lengths)
+        base_maps = model_contacts(template, self.grasp_angles, self.object, c.tau)
+        baseline, _ = score_contacts(template, canonical, base_maps.accumulated, self.rig, self.paint, views)
+        self.eval_views, self.eval_pred, self.canonical = views, pred, canonical
+        ablation = {}
+        for n in c.views:
+            count = len(self.rig) if n == 0 or n >= len(self.rig) else n
+            if count == len(self.rig):
+                ablation[count] = ours
+                continue
+            self.say(f"    camera ablation: {count} cameras")
+            hand, obj, _ = self.inputs.train(spread_cameras(self.rig, count))
+            maps = model_contacts(hand, self.grasp_angles, obj, c.tau)
+            ablation[count], _ = score_contacts(hand, canonical, maps.accumulated, self.rig, self.paint, views)
+        self.scores = {"ours": ours, "baseline": baseline, "true_paint": true_paint}
+        self.ablation = ablation
+        return {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
+                "baseline_f1": baseline.mean_f1, "contact_iou_vs_true_paint": true_paint.mean_iou,
+                "views": {str(k): v.mean_iou for k, v in sorted(ablation.items())}}
+
+
+def camera_errors(rig, truth) -> dict:
+    """Per camera of `rig`: centre error (mm) and rotation error (degrees) against `truth`."""
+    idx = [truth.index(c) for c in rig.ids]
+    centre = 1000 * np.linalg.norm(rig.centers - truth.centers[idx], axis=1)
+    rel = np.einsum("cij,ckj->cik", rig.R, truth.R[idx])
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    return {"centre_mm": centre, "rotation_deg": np.degrees(np.arccos(cos))}
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Pooled IoU of two boolean mask stacks."""
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+def _png(path: Path, image: np.ndarray, zoom: int = 2) -> None:
+    import cv2
+
+    big = cv2.resize(image, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
+    write_atomic(path, cv2.imencode(".png", big)[1].tobytes())
+
+
+def pictures(demo: Demo, count: int = 3) -> list[tuple[str, str]]:
+    """The report's PNGs in DIR/images: keypoints, contacts, paint comparison, ablation, sync, cameras."""
+    import shutil
+
+    from dataset_tools.annotate import take_key
+    from dataset_tools.dataset import read_dataset
+    from dataset_tools.take import Take
+
+    from .contacts import contact_image
+    from .evaluate import render_contacts
+    from .report import ablation_png, keypoint_overlay, mask_comparison
+
+    demo.images.mkdir(parents=True, exist_ok=True)
+    out: list[tuple[str, str]] = []
+    grasp = read_dataset(demo.dataset)[take_key(demo.take["grasp"])]
+    take = Take(demo.take["grasp"])
+    hold = int(np.argmax(demo.maps.instant.sum(axis=1)))
+    seen = (grasp.keypoints2d[hold, :, :, 2] > 0).sum(axis=1)
+    cams = np.argsort(-seen)[:count]
+    projected = demo.rig.project(grasp.fitted_joints()[hold])
+    value, alpha = render_contacts(demo.hand, demo.grasp_angles[hold], demo.maps.accumulated, demo.rig)
+    for c in cams:
+        cam = grasp.cameras[c]
+        image = take.read_frame(cam, int(max(grasp.frame_index[hold, c], 0)))
+        rig_c = demo.rig.index(cam)
+        _png(demo.images / f"keypoints_{cam}.png", keypoint_overlay(image, grasp.keypoints2d[hold, c], projected[rig_c]))
+        out.append((f"images/keypoints_{cam}.png", f"grasp, camera {cam}: simulated detections (yellow) and the "
+                                                   "fitted 26-DOF hand projected (magenta)"))
+        _png(demo.images / f"contact_{cam}.png", contact_image(value[rig_c], alpha[rig_c], image))
+        out.append((f"images/contact_{cam}.png", f"grasp, camera {cam}: accumulated contact on the Gaussian hand "
+                                                 "(yellow to red) at the firmest hold"))
+    canonical = Take(demo.take["canonical"])
+    for j, v in enumerate(demo.eval_views[:count]):
+        cam = demo.rig.ids[v]
+        image = canonical.read_frame(cam, min(1, canonical.frame_count(cam) - 1))
+        _png(demo.images / f"paint_{cam}.png", mask_comparison(image, demo.eval_pred[j], demo.paint[v]))
+        out.append((f"images/paint_{cam}.png", f"canonical pose, camera {cam}: paint (green), predicted contact "
+                                               "(red), both (yellow)"))
+    write_atomic(demo.images / "ablation.png", ablation_png(demo.summary["views"], demo.summary["baseline_iou"]))
+    out.append(("images/ablation.png", "camera ablation: contact IoU of models built from fewer cameras"))
+    for src, name, caption in ((demo.take["grasp"] / "sync_timeline.png", "sync_timeline.png",
+                                "grasp take: frame timing of every camera (sync report)"),
+                               (demo.calib / "cameras.png", "cameras.png", "calibrated camera layout, coloured by error")):
+        if src.exists():
+            shutil.copyfile(src, demo.images / name)
+            out.append((f"images/{name}", caption))
+    return out
+
+
+def run_demo(out: Path, config: DemoConfig = DemoConfig(), say: Callable[[str], None] = print,
+             force: bool = False) -> dict:
+    """Run every stage into `out` and return the summary (also DIR/summary.json and report.html)."""
+    from .report import write_html
+
+    out = Path(out)
+    if (out / "summary.json").exists() and not force:
+        raise DemoError(f"{out}: holds a finished demo (summary.json); use --force to run it again")
+    demo = Demo(out, config, say)
+    for name, fn in (("record", demo.record), ("sync", demo.sync), ("calibrate", demo.calibrate),
+                     ("annotate", demo.annotate), ("segment", demo.segment), ("reconstruct", demo.reconstruct),
+                     ("contacts", demo.contacts), ("evaluate", demo.evaluate)):
+        demo.stage(name, fn)
+    evaluation = demo.stages[-1].metrics
+    stages = [{"name": s.name, "seconds": round(s.seconds, 2), "metrics": s.metrics} for s in demo.stages]
+    demo.summary = {**{k: evaluation[k] for k in ("contact_iou", "contact_f1", "baseline_iou", "baseline_f1",
+                                                   "views")},
+                    "scores": {k: v.to_json() for k, v in demo.scores.items()},
+                    "config": {k: v for k, v in dataclasses.asdict(config).items()},
+                    "stages": stages, "seconds": round(sum(s.seconds for s in demo.stages), 1)}
+    figures = pictures(demo)
+    write_html(out / "report.html", "manus-capture demo: simulated grasp capture", demo.summary, stages, figures)
+    write_atomic(out / "summary.json", json.dumps(demo.summary, indent=2, default=float).encode())
+    return demo.summary

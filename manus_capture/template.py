@@ -1,0 +1,79 @@
+"""The baseline hand: a capsule template on the skeleton, without a learned shape.
+
+This plays the part of MANO's mean shape in the MANUS paper's comparison: it knows the subject's
+bone lengths (from annotate) but not their hand's thickness, the flesh of the palm between the
+metacarpals, or the wrist. One capsule per bone, radii from generic adult anthropometry scaled by
+overall hand size, surface points about 2.5 mm apart rigidly attached to their bone. Each point is
+a small opaque isotropic Gaussian, so contacts and renders go through exactly the code that scores
+the Gaussian hand (contacts.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from dataset_tools.hand.skeleton import BONES, DEFAULT_BONE_LENGTHS, HandSkeleton
+from rig.sim.shapes import capsule_distances, capsule_surface
+
+# Generic radii (m) per bone of the average adult hand: metacarpal, proximal, middle, distal
+# phalanx (the thumb: carpal, metacarpal, proximal, distal).
+TEMPLATE_RADII = np.array([
+    [0.0120, 0.0120, 0.0100, 0.0090],
+    [0.0110, 0.0095, 0.0085, 0.0075],
+    [0.0110, 0.0095, 0.0085, 0.0075],
+    [0.0105, 0.0090, 0.0080, 0.0072],
+    [0.0100, 0.0085, 0.0075, 0.0068],
+])
+SPACING_M = 0.0025
+
+
+class PointHand:
+    """Points rigidly attached to the bones of a skeleton, each an isotropic Gaussian of standard
+    deviation `sigma`: the capsule template, or any surface sampled on the bones."""
+
+    def __init__(self, skeleton: HandSkeleton, points_rest: np.ndarray, bone: np.ndarray, sigma: float,
+                 opacity: float = 0.99) -> None:
+        self.skeleton = skeleton
+        self.points_rest = np.asarray(points_rest, dtype=np.float64)
+        self.bone = np.asarray(bone, dtype=np.int64)
+        self.sigma = float(sigma)
+        self.opacities = torch.full((len(self.points_rest),), float(opacity))
+
+    def __len__(self) -> int:
+        return len(self.points_rest)
+
+    def pose_batch(self, angles: torch.Tensor) -> torch.Tensor:
+        """Posed points (T,P,3) for angles (T,26)."""
+        R, t = self.skeleton.bone_transforms(np.asarray(angles, dtype=np.float64))
+        points = np.einsum("...pij,pj->...pi", R[..., self.bone, :, :], self.points_rest) + t[..., self.bone, :]
+        return torch.as_tensor(points, dtype=torch.float32)
+
+    def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Posed centres (P,3) and isotropic covariances (P,3,3) for angles (26,)."""
+        means = self.pose_batch(torch.as_tensor(angles)[None])[0]
+        covars = torch.eye(3).expand(len(means), 3, 3) * self.sigma ** 2
+        return {"means": means, "covars": covars}
+
+
+def capsule_template(bone_lengths=None, spacing: float = SPACING_M) -> PointHand:
+    """The template's surface for one subject's bone lengths (20,), points `spacing` apart."""
+    skeleton = HandSkeleton(bone_lengths)
+    scale = float(skeleton.bone_lengths.sum() / DEFAULT_BONE_LENGTHS.sum())
+    joints = skeleton.rest_joints()
+    a, b = joints[BONES[:, 0]], joints[BONES[:, 1]]
+    radius = TEMPLATE_RADII.reshape(-1) * scale
+    tip = np.arange(20) % 4 == 3
+    # the fingertip keypoint is the end of the finger: the distal capsule stops short of it
+    b = np.where(tip[:, None], b - radius[:, None] * (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True), b)
+    points, bones = [], []
+    for k in range(20):
+        p, _ = capsule_surface(a[k], b[k], float(radius[k]), spacing)
+        points.append(p)
+        bones.append(np.full(len(p), k))
+    points, bones = np.concatenate(points), np.concatenate(bones)
+    # only the outer surface of the union: drop points buried in another bone's capsule
+    d = capsule_distances(points, a, b, radius)
+    d[np.arange(len(points)), bones] = np.inf
+    keep = d.min(axis=1) > -1e-4
+    return PointHand(skeleton, points[keep], bones[keep], 0.5 * spacing)

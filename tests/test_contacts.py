@@ -1,0 +1,153 @@
+"""Contacts and their scoring, checked with the simulated hand's true geometry.
+
+With the true surface of the hand (points rigidly on their bones) and points on the true object
+surface standing in for the Gaussians, the contact code must reproduce the simulator's paint:
+that is the upper bound the learned models are measured against in the end-to-end test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from manus_capture.contacts import contact_value, hand_object_contacts, render_values
+from manus_capture.evaluate import (EvaluateError, canonical_pose, mask_scores, pick_views, score_contacts,
+                                    spread_cameras)
+from manus_capture.template import PointHand, capsule_template
+from rig.layouts import make_rig
+from rig.sim.cube import SimulatedCube
+
+
+def surface_samples(sdf, centre: np.ndarray, radius: float, n: int, seed: int = 0) -> np.ndarray:
+    """Points on an SDF's zero set: random points near the object, pulled onto the surface."""
+    rng = np.random.default_rng(seed)
+    x = centre + rng.uniform(-radius, radius, (n, 3))
+    h = 1e-5
+    for _ in range(4):
+        d = sdf(x)
+        grad = np.stack([(sdf(x + h * e) - d) / h for e in np.eye(3)], axis=1)
+        x = x - d[:, None] * grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
+    return x[np.abs(sdf(x)) < 1e-4]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    cfg = make_rig("cube53", cameras=20, resolution=(320, 180))
+    cfg = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, paint=True, object="mug"))
+    grasp = SimulatedCube(cfg, "grasp", 2.0)
+    canonical = SimulatedCube(cfg, "canonical", 2.0)
+    pose = grasp.motion.object_poses(np.zeros(1))
+    R, t = pose[0][0], pose[1][0]
+    obj = surface_samples(lambda x: grasp.object.sdf(x, (R, t)), t, grasp.object.radius + 0.01, 200_000)
+    hand = grasp.hand
+    truth_hand = PointHand(hand.skeleton, hand.surface_rest, hand.surface_bone, 0.4 * hand.spacing, 0.5)
+    times = np.linspace(0.0, 2.0, 121)
+    return {"cfg": cfg, "grasp": grasp, "canonical": canonical, "object": obj, "truth_hand": truth_hand,
+            "angles": grasp.motion.hand_angles(times), "times": times}
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def test_contact_value_binary_and_soft():
+    d = np.array([0.0, 0.002, 0.0039, 0.004, 0.01, np.inf])
+    assert contact_value(d).tolist() == [1, 1, 1, 0, 0, 0]
+    assert np.allclose(contact_value(d, soft=True), [1, 0.5, 0.025, 0, 0, 0])
+
+
+def test_true_geometry_reproduces_the_simulated_paint(scene):
+    """Accumulated contact of the true hand surface against points on the true object surface
+    agrees with the simulator's paint (computed from the exact SDF): the contact code is right."""
+    maps = hand_object_contacts(scene["truth_hand"], scene["angles"], scene["object"])
+    truth = scene["grasp"].motion.contact_accumulated()
+    assert maps.instant.shape == (len(scene["angles"]), len(truth))
+    assert truth.sum() > 200
+    # object points ~1 mm apart under-estimate the distance by at most that: the boundary of a
+    # 4 mm band moves by well under a point spacing; frames every 16 ms against the path's 1500
+    agreement = iou(maps.accumulated > 0.5, truth)
+    assert agreement > 0.9, agreement
+    # the instant map at the hold is the true instant contact
+    hold = np.argmax(maps.instant.sum(axis=1))
+    true_instant = scene["grasp"].motion.contact_instant(scene["times"][hold:hold + 1])[0]
+    assert iou(maps.instant[hold] > 0.5, true_instant) > 0.85
+    # the object side: points touched are near the hand's contact, and there are some
+    assert 0 < maps.object_accumulated.sum() < len(scene["object"])
+
+
+def test_frames_without_a_hand_have_no_contact(scene):
+    angles = scene["angles"].copy()
+    angles[:] = np.nan
+    maps = hand_object_contacts(scene["truth_hand"], angles[:5], scene["object"])
+    assert not maps.instant.any() and not maps.accumulated.any()
+
+
+def test_true_contact_rendered_on_the_canonical_pose_matches_the_paint_labels(scene):
+    """Rendering the true contact on the true canonical pose into the views that show paint
+    reproduces the renderer's paint labels (both in raw, distorted pixels)."""
+    cube = scene["canonical"]
+    tick = float(cube.tick_ns(3))
+    labels = np.stack([cube.render(c, tick, labels=True).labels for c in range(len(cube.cameras))])
+    paint = labels == 3
+    views = pick_views(paint, 10)
+    assert len(views) >= 5
+    canonical = cube.motion.hand_angles(np.array([cube.seconds(tick)]))[0]
+    truth = cube.motion.contact_accumulated().astype(np.float32)
+    scores, pred = score_contacts(scene["truth_hand"], canonical, truth, cube.cameras, paint, views)
+    # The only differences are at the paint's edges: the regions are 20-80 px at 320x180 (a pixel
+    # is 2-3 mm), so half a pixel of boundary costs about a third of the IoU (measured 0.55-0.65).
+    assert scores.mean_iou > 0.5 and scores.pooled_iou > 0.5, scores.to_json()
+    template = capsule_template(cube.hand.skeleton.bone_lengths)
+    maps = hand_object_contacts(template, scene["angles"], scene["object"])
+    baseline, _ = score_contacts(template, canonical, maps.accumulated, cube.cameras, paint, views)
+    assert baseline.mean_iou < scores.mean_iou
+
+
+def test_render_values_reads_back_a_constant(scene):
+    V = torch.eye(4)[None]
+    V[0, 2, 3] = 0.5
+    K = torch.tensor([[[200.0, 0, 63.5], [0, 200.0, 63.5], [0, 0, 1]]])
+    hand = scene["truth_hand"]
+    angles = np.zeros(26)
+    value, alpha = render_values(hand, angles, np.full(len(hand), 0.25), V, K, 128, 128)
+    covered = alpha > 0.5
+    assert covered.sum() > 500 and np.allclose(value[covered], 0.25, atol=1e-4)
+
+
+def test_mask_scores_against_hand_computed_values():
+    pred = np.zeros((2, 4, 4), bool)
+    truth = np.zeros((2, 4, 4), bool)
+    pred[0, :2] = True          # 8 px
+    truth[0, 1:3] = True        # 8 px, 4 shared
+    scores = mask_scores(pred, truth, ("a", "b"))
+    assert np.allclose(scores.iou, [4 / 12, 1.0]) and np.allclose(scores.f1, [0.5, 1.0])
+    assert np.isclose(scores.pooled_iou, 4 / 12) and np.isclose(scores.pooled_f1, 0.5)
+    with pytest.raises(EvaluateError, match="shape"):
+        mask_scores(pred[:1], truth, ("a",))
+
+
+def test_view_choice_and_camera_spread(scene):
+    paint = np.zeros((5, 8, 8), bool)
+    paint[1, :5] = True
+    paint[3, :3] = True
+    assert pick_views(paint, 10, min_px=10).tolist() == [1, 3]
+    with pytest.raises(EvaluateError, match="paint"):
+        pick_views(np.zeros((3, 4, 4), bool))
+    rig = scene["canonical"].cameras
+    four = spread_cameras(rig, 4)
+    assert len(four) == 4 and len(set(four.tolist())) == 4
+    centres = rig.centers[four]
+    spacing = np.linalg.norm(centres[:, None] - centres[None], axis=-1)[np.triu_indices(4, 1)]
+    assert spacing.min() > 0.5  # on a ~1 m cube, four spread cameras are not neighbours
+    assert spread_cameras(rig, 100).tolist() == list(range(len(rig)))
+
+
+def test_canonical_pose_is_the_median_of_fitted_frames():
+    angles = np.zeros((5, 26))
+    angles[:, 0] = [0.1, 0.2, 0.3, np.nan, 5.0]
+    assert np.isclose(canonical_pose(angles)[0], 0.25)
+    with pytest.raises(EvaluateError):
+        canonical_pose(np.full((3, 26), np.nan))

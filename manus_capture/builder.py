@@ -32,7 +32,8 @@ class ModelInputs:
     hand_frames: object           # splat.takes.HandFrames
     train_rows: np.ndarray
     test_rows: np.ndarray
-    hand_masks: np.ndarray        # (T,C,H,W) per frame group of the hand take, rig order
+    train_masks: np.ndarray       # (P,C,H,W) hand masks of train_rows, rig order
+    test_masks: np.ndarray        # (Q,C,H,W) of test_rows
     object_masks: np.ndarray      # (C,H,W), rig order
     object_iterations: int = 400
     hand_iterations: int = 400
@@ -42,15 +43,16 @@ class ModelInputs:
     @classmethod
     def prepare(cls, rig, dataset: Path, hand_take: Path, object_take: Path, background_take: Path,
                 poses: int = 20, object_masks: np.ndarray | None = None, **settings) -> "ModelInputs":
-        """Segment the hand take (and the object take unless its masks are given) against the
-        empty cube, and choose `poses` training poses of the hand spread over the take.
+        """Choose `poses` training poses of the hand spread over the take; their hand masks are those
+        `segment` stored in the dataset, else the hand take is segmented against the empty cube
+        (and the object take too unless its masks are given).
 
         The poses are frame groups spread over the take, not only its holds: with triggered
         cameras (exposures within a millisecond) every group shows one pose in every view.
         """
         from dataset_tools.annotate import take_key
         from dataset_tools.segmentation.takes import segment_take
-        from manus_capture.splat.takes import hand_frames_from_dataset
+        from manus_capture.splat.takes import TakeInputError, hand_frames_from_dataset, hand_masks_from_dataset
 
         frames = hand_frames_from_dataset(dataset, take_key(hand_take))
         fitted = np.flatnonzero(np.isfinite(frames.angles).all(axis=1))
@@ -58,12 +60,18 @@ class ModelInputs:
             raise BuildError(f"{hand_take}: only {len(fitted)} frames with a fitted hand in {dataset}")
         rows = fitted[np.unique(np.linspace(0, len(fitted) - 1, poses + HELD_OUT_POSES).round().astype(int))]
         test = rows[1::max(len(rows) // HELD_OUT_POSES, 1)][:HELD_OUT_POSES]
-        seg = segment_take(hand_take, rig, background_take, None)
-        hand_masks = seg["hand"][:, [seg["cameras"].index(cam) for cam in rig.ids]]
+        train = np.setdiff1d(rows, test)
+        try:
+            train_masks, test_masks = (hand_masks_from_dataset(dataset, take_key(hand_take), r, rig.ids)
+                                       for r in (train, test))
+        except TakeInputError:
+            seg = segment_take(hand_take, rig, background_take, None)
+            hand_masks = seg["hand"][:, [seg["cameras"].index(cam) for cam in rig.ids]]
+            train_masks, test_masks = hand_masks[train], hand_masks[test]
         if object_masks is None:
             seg = segment_take(object_take, rig, background_take, object_take)
             object_masks = seg["object"][0][[seg["cameras"].index(cam) for cam in rig.ids]]
-        return cls(rig, Path(hand_take), Path(object_take), frames, np.setdiff1d(rows, test), test, hand_masks,
+        return cls(rig, Path(hand_take), Path(object_take), frames, train, test, train_masks, test_masks,
                    object_masks, **settings)
 
     def train(self, cams: np.ndarray, evaluate: bool = False):
@@ -85,14 +93,14 @@ class ModelInputs:
         obj = train_object(crop_views(views), ObjectConfig.fast(self.object_iterations, seed=self.seed),
                            progress=False).gaussians
         poses, hand_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.train_rows,
-                                                 masks=self.hand_masks[self.train_rows][:, cams], scale=self.scale)
+                                                 masks=self.train_masks[:, cams], scale=self.scale)
         hand = HandGaussians.initialize(self.hand_frames.bone_lengths, per_bone=60, sh_degree=1, seed=self.seed)
         train_hand(hand, poses, [crop_views(v) for v in hand_views],
                    HandConfig.fast(self.hand_iterations, seed=self.seed), progress=False)
         metrics = {}
         if evaluate:
             test_poses, test_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.test_rows,
-                                                          masks=self.hand_masks[self.test_rows][:, cams],
+                                                          masks=self.test_masks[:, cams],
                                                           scale=self.scale)
             hand_scores, object_scores = evaluate_hand(hand, test_poses, test_views), evaluate_object(obj, views)
             metrics = {"hand_psnr_heldout_poses_db": hand_scores["psnr"],

@@ -201,10 +201,12 @@ class Demo:
         rig = load_cameras(self.calib)
         background, obj = self.take["calibration"], self.take["object"]
         metrics = {}
-        for kind in ("object", "canonical"):
-            result = segment_take(self.take[kind], rig, background, obj)
+        for kind in ("object", "hand", "canonical"):
+            result = segment_take(self.take[kind], rig, background, obj if kind != "hand" else None)
             write_masks(self.dataset, take_key(self.take[kind]), result, {"segmentation_background": str(background)})
             order = [result["cameras"].index(c) for c in rig.ids]
+            if kind == "hand":
+                continue
             with h5py.File(self.take[kind] / "ground_truth.h5") as gt:
                 labels = gt["labels/image"][:, 0]
             if kind == "object":

@@ -67,3 +67,43 @@ def test_gaussian_hand_beats_the_template_and_more_views_help(demo):
     views = [summary["views"][k] for k in ("3", "6", "12")]
     assert summary["contact_iou"] > summary["baseline_iou"]
     assert views[0] < views[1] < views[2]
+
+
+def test_commands_on_the_demo_session(demo, tmp_path):
+    """reconstruct hand (masks from segment), contacts and evaluate through the command line on
+    the demo's session: the same figures as the demo's own stages, from the files alone."""
+    import h5py
+
+    out, summary, _ = demo
+    runner = CliRunner()
+    session, dataset = out / "session", tmp_path / "D.h5"
+    dataset.write_bytes((out / "DATASET.h5").read_bytes())
+    hand = tmp_path / "hand.safetensors"
+    result = runner.invoke(cli, ["reconstruct", "hand", "--cameras", str(out / "calib"), "--take",
+                                 str(session / "01-hand"), "--dataset", str(dataset), "--dataset-take",
+                                 "session/01-hand", "--iterations", "60", "--poses", "6", "-o", str(hand)])
+    assert result.exit_code == 0, result.output
+    assert "held-out poses" in result.output
+    result = runner.invoke(cli, ["contacts", str(dataset), "--take", "session/03-grasp1", "--hand",
+                                 str(out / "models" / "hand.safetensors"), "--object",
+                                 str(out / "models" / "object.safetensors")])
+    assert result.exit_code == 0, result.output
+    with h5py.File(dataset) as f:
+        accumulated = f["session/03-grasp1/contacts/accumulated"][()]
+        assert f["session/03-grasp1/contacts/instant"].shape[0] == len(f["session/03-grasp1/frame_ns"])
+    stage_contacts = stage(summary, "contacts")
+    assert int((accumulated > 0.5).sum()) == stage_contacts["hand_gaussians_in_contact"]
+    scores = tmp_path / "scores.json"
+    result = runner.invoke(cli, ["evaluate", str(dataset), "--grasp", "session/03-grasp1", "--canonical",
+                                 "session/04-canonical1", "--calib", str(out / "calib"), "--hand",
+                                 str(out / "models" / "hand.safetensors"), "--object",
+                                 str(out / "models" / "object.safetensors"), "-o", str(scores)])
+    assert result.exit_code == 0, result.output
+    got = json.loads(scores.read_text())
+    assert abs(got["contact_iou"] - summary["contact_iou"]) < 1e-6
+    assert abs(got["baseline_iou"] - summary["baseline_iou"]) < 1e-6
+    # bad input: a take that is not in the dataset is named, exit code 2
+    result = runner.invoke(cli, ["contacts", str(dataset), "--take", "session/nope", "--hand",
+                                 str(out / "models" / "hand.safetensors"), "--object",
+                                 str(out / "models" / "object.safetensors")])
+    assert result.exit_code == 2 and "session/nope" in result.output

@@ -249,7 +249,7 @@ def test_reconstruct_hand_command_from_annotate(small_hand_take, tmp_path):
     assert len(fitted) >= 4
     def args(frames, out):
         return ["reconstruct", "hand", "--cameras", str(tmp_path / "cameras.json"), "--take", str(small_hand_take),
-                "--dataset", str(tmp_path / "D.h5"), "--frames", ",".join(map(str, frames)),
+                "--dataset", str(tmp_path / "D.h5"), "--masks", "truth", "--frames", ",".join(map(str, frames)),
                 "--test-frames", str(fitted[3]), "--scale", "1", "--iterations", "10", "--per-bone", "5",
                 "-o", str(tmp_path / out)]
 

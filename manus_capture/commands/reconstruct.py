@@ -202,21 +202,22 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
               help="Without --frames: this many holds, spread over the take.")
 @click.option("--test-frames", default="",
               help="Comma-separated frames held out for evaluation (default: every fifth chosen frame).")
-@click.option("--masks", "masks_arg", type=click.Choice(["truth"]), default="truth", show_default=True,
-              help="Hand masks: the labels of a simulated take's ground_truth.h5.")
+@click.option("--masks", "masks_arg", type=click.Choice(["dataset", "truth"]), default=None,
+              help="Hand masks: those `segment` stored in --dataset for the take (default with --dataset), "
+                   "or the labels of a simulated take's ground_truth.h5 (default with --truth).")
 @click.option("--iterations", type=click.IntRange(1), default=1000, show_default=True)
 @click.option("--per-bone", type=click.IntRange(1), default=60, show_default=True,
               help="Initial Gaussians around each of the 20 bones.")
 @_common_options
 def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None, truth: bool, frames_arg: str,
-                 poses: int, test_frames: str, masks_arg: str, iterations: int, per_bone: int, cameras_path: Path,
+                 poses: int, test_frames: str, masks_arg: str | None, iterations: int, per_bone: int, cameras_path: Path,
                  only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
                  lpips_weights: Path | None, lpips_net: str, seed: int, output: Path, force: bool) -> None:
     """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
     from manus_capture.splat.checkpoint import save_checkpoint
     from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
     from manus_capture.splat.takes import (crop_views, hand_frames_from_dataset, hand_frames_from_truth,
-                                           hand_views_from_take, still_frames)
+                                           hand_masks_from_dataset, hand_views_from_take, still_frames)
 
     if truth == (dataset_path is not None):
         raise click.UsageError("give exactly one of --dataset and --truth")
@@ -226,13 +227,26 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     hand = hand_frames_from_truth(take) if truth else hand_frames_from_dataset(dataset_path, dataset_take)
     frames = _int_list(frames_arg, "--frames") or [int(f) for f in still_frames(hand.angles, count=poses)]
     if not frames:
-        raise ReconstructInputError(f"{hand.source}: the hand never holds still; choose frames with --frames")
+        # fitted angles carry the detector's noise, so they are never still to 1e-3: frame groups
+        # spread over the take instead, which is right for cameras triggered together
+        fitted = np.flatnonzero(np.isfinite(hand.angles).all(axis=1))
+        if len(fitted) < 2:
+            raise ReconstructInputError(f"{hand.source}: fewer than two frames with a fitted hand")
+        frames = [int(f) for f in fitted[np.unique(np.linspace(0, len(fitted) - 1, poses).round().astype(int))]]
+        click.echo(f"no holds in {hand.source}: {len(frames)} frame groups spread over the take", err=True)
     test = _int_list(test_frames, "--test-frames") or frames[2::5]
     frames = list(dict.fromkeys(frames + test))
     train_rows = [i for i, f in enumerate(frames) if f not in test]
     if not train_rows:
         raise click.UsageError("--test-frames holds out every frame")
-    angles, views = hand_views_from_take(take, rig, hand, frames, masks_arg, scale)
+    masks_arg = masks_arg or ("truth" if truth else "dataset")
+    if masks_arg == "dataset":
+        if dataset_path is None:
+            raise click.UsageError("--masks dataset needs --dataset")
+        masks = hand_masks_from_dataset(dataset_path, dataset_take, frames, rig.ids)
+    else:
+        masks = "truth"
+    angles, views = hand_views_from_take(take, rig, hand, frames, masks, scale)
 
     model = HandGaussians.initialize(hand.bone_lengths, per_bone=per_bone, sh_degree=sh_degree, seed=seed)
     cfg = HandConfig.fast(iterations, sh_degree=sh_degree, background=bg, seed=seed,

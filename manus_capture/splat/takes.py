@@ -316,6 +316,39 @@ def hand_frames_from_dataset(dataset_path: str | os.PathLike, take_key: str | No
                       f"{dataset_path}:{take_key}")
 
 
+def hand_masks_from_dataset(dataset_path: str | os.PathLike, take_key: str | None, rows: Sequence[int],
+                            cameras: Sequence[str]) -> np.ndarray:
+    """Hand masks (P,C,H,W) that `segment` stored for a take (masks/hand), for annotation rows
+    `rows` of that take (matched on frame_ns) and `cameras` in that order."""
+    import h5py
+
+    from dataset_tools.dataset import read_dataset
+
+    ds = read_dataset(dataset_path)
+    key = take_key or (ds.takes[0] if len(ds) == 1 else None)
+    if key is None or key not in ds:
+        raise TakeInputError(f"{dataset_path}: name the take (takes: {', '.join(ds.takes) or 'none'})")
+    frame_ns = ds[key].frame_ns[np.asarray(rows, np.int64)]
+    with h5py.File(dataset_path, "r") as f:
+        group = f[key]
+        if "masks/hand" not in group:
+            raise TakeInputError(f"{dataset_path}: take {key} has no hand masks (run `manus-capture segment` on it)")
+        mask_ns = group["masks/frame_ns"][()]
+        mask_cams = [c.decode() if isinstance(c, bytes) else str(c) for c in group.attrs["mask_cameras"]]
+        missing = [c for c in cameras if c not in mask_cams]
+        if missing:
+            raise TakeInputError(f"{dataset_path}: take {key} has no masks of cameras {', '.join(missing)}")
+        lookup = {int(t): i for i, t in enumerate(mask_ns)}
+        absent = [int(t) for t in frame_ns if int(t) not in lookup]
+        if absent:
+            raise TakeInputError(f"{dataset_path}: take {key} has no masks for {len(absent)} of the chosen frame "
+                                 "groups (segment it with --every 1)")
+        index = [lookup[int(t)] for t in frame_ns]
+        order = [mask_cams.index(c) for c in cameras]
+        masks = group["masks/hand"]
+        return np.stack([masks[i][order] for i in index])
+
+
 def still_frames(angles: np.ndarray, tolerance: float = 1e-3, count: int | None = None) -> np.ndarray:
     """The middle frame of every run of frames in which the hand holds still.
 

@@ -31,7 +31,7 @@ $(STAMP): setup.cfg pyproject.toml
 	touch $(STAMP)
 
 demo: setup
-	$(VENV)/bin/manus-capture demo -o $(DEMO_DIR)
+	$(VENV)/bin/manus-capture demo -o $(DEMO_DIR) --force
 
 models: setup
 	$(VENV)/bin/manus-capture models install mediapipe-hand

@@ -58,12 +58,14 @@ def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, point
 
 
 def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, voxel: float = 0.005,
-          coarse: float = 0.02, misses: int = 1, min_views: int = 2) -> Occupancy:
+          coarse: float = 0.02, misses: int = 1, miss_fraction: float = 0.2, min_views: int = 2) -> Occupancy:
     """Occupancy of the foreground seen in masks (C,H,W) bool of the rig's views.
 
     Views with an empty mask say nothing (the hand may be hidden from them behind the table) and
-    are left out. A voxel is kept when it is a hit in all but `misses` of the views that see it,
-    and in at least `min_views`."""
+    are left out. A voxel is kept when it is a hit in all but `misses` (or `miss_fraction` of
+    them, when more) of the views that see it, and in at least `min_views`: a view can miss
+    because something static hides the hand from it (the table from the floor's cameras, which
+    see foreground elsewhere), and a big rig has several such views."""
     masks = np.asarray(masks, bool)
     if masks.shape[0] != len(rig.ids):
         raise SegmentationError(f"carve: {masks.shape[0]} masks for {len(rig.ids)} cameras")
@@ -77,7 +79,8 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     size = coarse
     while True:
         seen, hit = _votes(rig, masks, dist, use, points, size / 2)
-        points = points[(hit >= np.maximum(seen - misses, min_views))]
+        allowed = np.maximum(misses, np.floor(miss_fraction * seen)).astype(np.int32)
+        points = points[(hit >= np.maximum(seen - allowed, min_views))]
         if size <= voxel * 1.001 or not len(points):
             return Occupancy(points, size)
         factor = max(2, int(round(size / voxel)))

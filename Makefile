@@ -6,7 +6,8 @@ PY       := $(VENV)/bin/python
 STAMP    := $(VENV)/.installed
 APT_PKGS := aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config socat ffmpeg
 SUDO     := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
-PYTEST_ARGS ?= -n 2 -q
+# one worker per file: a module fixture (the demo run, the rendered cube) is built once, not per worker
+PYTEST_ARGS ?= -n 2 -q --dist loadfile
 DEMO_DIR ?= demo
 
 .PHONY: setup system models demo test bench clean

@@ -231,6 +231,7 @@ class HandConfig:
     lpips_net: str = "alex"
     chunk_elements: int | None = None
     seed: int = 0
+    max_scale: float | None = None   # metres; caps every Gaussian's axes after each step
 
     @classmethod
     def fast(cls, iterations: int = 400, **changes) -> "HandConfig":
@@ -277,6 +278,11 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
                                     bg, sh_degree=degree, return_meta=True, chunk_elements=cfg.chunk_elements)
         loss, parts = image_loss(rgb, targets[p][v:v + 1], model.gaussians.scales, cfg.weights, lpips)
         record = optimize_step(model.gaussians, optimizer, strategy, loss, parts, meta, step)
+        if cfg.max_scale is not None:
+            # small splats cannot stand for the hand from inside it: to cover the silhouettes
+            # their centres must move out to the surface, where contact is measured
+            with torch.no_grad():
+                model.gaussians.params["log_scales"].clamp_(max=math.log(cfg.max_scale))
         history.append(record)
         if step % 10 == 0 or step == cfg.iterations:
             bar.set_postfix(loss=f"{record['loss']:.4f}", n=len(model))

@@ -98,8 +98,8 @@ def test_true_contact_rendered_on_the_canonical_pose_matches_the_paint_labels(sc
     truth = cube.motion.contact_accumulated().astype(np.float32)
     scores, pred = score_contacts(scene["truth_hand"], canonical, truth, cube.cameras, paint, views)
     # The only differences are at the paint's edges: the regions are 20-80 px at 320x180 (a pixel
-    # is 2-3 mm), so half a pixel of boundary costs about a third of the IoU (measured 0.55-0.65).
-    assert scores.mean_iou > 0.5 and scores.pooled_iou > 0.5, scores.to_json()
+    # is 2-3 mm), so half a pixel of boundary costs a quarter of the IoU (measured 0.73; template 0.58).
+    assert scores.mean_iou > 0.65 and scores.pooled_iou > 0.65, scores.to_json()
     template = capsule_template(cube.hand.skeleton.bone_lengths)
     maps = hand_object_contacts(template, scene["angles"], scene["object"])
     baseline, _ = score_contacts(template, canonical, maps.accumulated, cube.cameras, paint, views)

@@ -351,8 +351,8 @@ def pictures(demo: Demo, count: int = 3) -> list[tuple[str, str]]:
     grasp = read_dataset(demo.dataset)[take_key(demo.take["grasp"])]
     take = Take(demo.take["grasp"])
     hold = int(np.argmax(demo.maps.instant.sum(axis=1)))
-    seen = (grasp.keypoints2d[hold, :, :, 2] > 0).sum(axis=1)
-    cams = np.argsort(-seen)[:count]
+    # the views that show the paint best see the hand's palm side, which does the grasping
+    cams = [grasp.cameras.index(demo.rig.ids[v]) for v in demo.eval_views[:count]]
     projected = demo.rig.project(grasp.fitted_joints()[hold])
     value, alpha = render_contacts(demo.hand, demo.grasp_angles[hold], demo.maps.accumulated, demo.rig)
     for c in cams:

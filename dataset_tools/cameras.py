@@ -140,6 +140,18 @@ class CameraRig:
         return cls.from_json(doc, str(path))
 
 
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float | None = None) -> np.ndarray:
+    """Intrinsics (...,3,3) of images resized by sx (and sy) with pixel centres at integer
+    coordinates, as everywhere here: x' = (x + 0.5) s - 0.5."""
+    sy = sx if sy is None else sy
+    K = np.array(K, dtype=np.float64)
+    K[..., 0, :] *= sx
+    K[..., 1, :] *= sy
+    K[..., 0, 2] += 0.5 * sx - 0.5
+    K[..., 1, 2] += 0.5 * sy - 0.5
+    return K
+
+
 class CalibrationFileError(ValueError):
     """A calibration file that cannot be read; names the file and the problem."""
 

@@ -54,18 +54,17 @@ class ModelInputs:
         `segment` stored in the dataset, else the hand take is segmented against the empty cube
         (and the object take too unless its masks are given).
 
-        The poses are frame groups spread over the take, not only its holds: with triggered
-        cameras (exposures within a millisecond) every group shows one pose in every view.
+        The poses are frame groups spread over the take (spread_frames), not only its holds.
         """
         from dataset_tools.annotate import take_key
         from dataset_tools.segmentation.takes import segment_take
-        from manus_capture.splat.takes import TakeInputError, hand_frames_from_dataset, hand_masks_from_dataset
+        from manus_capture.splat.takes import (TakeInputError, hand_frames_from_dataset, hand_masks_from_dataset,
+                                               spread_frames)
 
         frames = hand_frames_from_dataset(dataset, take_key(hand_take))
-        fitted = np.flatnonzero(np.isfinite(frames.angles).all(axis=1))
-        if len(fitted) < HELD_OUT_POSES + 2:
-            raise BuildError(f"{hand_take}: only {len(fitted)} frames with a fitted hand in {dataset}")
-        rows = fitted[np.unique(np.linspace(0, len(fitted) - 1, poses + HELD_OUT_POSES).round().astype(int))]
+        rows = spread_frames(frames.angles, poses + HELD_OUT_POSES)
+        if len(rows) < HELD_OUT_POSES + 2:
+            raise BuildError(f"{hand_take}: only {len(rows)} frames with a fitted hand in {dataset}")
         test = rows[1::max(len(rows) // HELD_OUT_POSES, 1)][:HELD_OUT_POSES]
         train = np.setdiff1d(rows, test)
         try:

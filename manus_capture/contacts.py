@@ -5,9 +5,9 @@ nearest object Gaussian is closer than tau (4 mm), and the reverse gives the con
 object. Over a take the instantaneous maps (T,G) accumulate by maximum into one map (G,) per
 hand Gaussian, which is what the paint on the subject's hand records.
 
-Anything with `pose(angles) -> {"means", "covars"}` and `opacities` is a hand model here: the
-trained MANUS-Hand (splat.hand.HandGaussians) and the capsule template of the baseline
-(template.CapsuleTemplate) are scored by the same code.
+Anything with `pose(angles) -> {"means", "covars"}`, `pose_batch(angles) -> means` and
+`opacities` is a hand model here: the trained MANUS-Hand (splat.hand.HandGaussians) and the
+capsule template of the baseline (template.capsule_template) are scored by the same code.
 """
 
 from __future__ import annotations
@@ -30,18 +30,18 @@ class PosedModel(Protocol):
 
     def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]: ...
 
+    def pose_batch(self, angles: torch.Tensor) -> torch.Tensor: ...
+
 
 @dataclass(frozen=True)
 class ContactMaps:
     """Contact values in [0,1]: hand `instant` (T,G), `accumulated` (G,) and the same for the
-    object (`object_instant` (T,M), `object_accumulated` (M,)); `distance` (T,G) metres from
-    each hand Gaussian to its nearest object Gaussian (inf beyond tau on the CPU path)."""
+    object (`object_instant` (T,M), `object_accumulated` (M,))."""
 
     instant: np.ndarray
     accumulated: np.ndarray
     object_instant: np.ndarray
     object_accumulated: np.ndarray
-    distance: np.ndarray
     tau: float
     soft: bool
 
@@ -52,15 +52,6 @@ def contact_value(distance: np.ndarray, tau: float = TAU_M, soft: bool = False) 
     if soft:
         return np.clip(1.0 - d / tau, 0.0, 1.0).astype(np.float32)
     return (d < tau).astype(np.float32)
-
-
-def posed_means(model: PosedModel, angles: np.ndarray | torch.Tensor) -> np.ndarray:
-    """Posed centres (T,G,3) of a hand model for joint angles (T,26)."""
-    angles = torch.as_tensor(np.asarray(angles, dtype=np.float32))
-    with torch.no_grad():
-        if hasattr(model, "pose_batch"):
-            return model.pose_batch(angles).cpu().numpy()
-        return np.stack([model.pose(a)["means"].cpu().numpy() for a in angles])
 
 
 def _cpu_pairs(hand: np.ndarray, obj: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -97,7 +88,9 @@ def hand_object_contacts(model: PosedModel, angles: np.ndarray, object_means: np
         raise ValueError(f"tau must be positive, got {tau}")
     angles = np.atleast_2d(np.asarray(angles, dtype=np.float64))
     finite = np.all(np.isfinite(angles), axis=1)
-    means = posed_means(model, np.where(finite[:, None], angles, 0.0))
+    with torch.no_grad():
+        means = model.pose_batch(torch.as_tensor(np.where(finite[:, None], angles, 0.0), dtype=torch.float32))
+    means = means.cpu().numpy()
     T, G = means.shape[:2]
     object_means = np.asarray(object_means, dtype=np.float64)
     hand_flat = means.reshape(-1, 3)
@@ -116,7 +109,7 @@ def hand_object_contacts(model: PosedModel, angles: np.ndarray, object_means: np
     instant = contact_value(distance, tau, soft)
     object_instant = contact_value(obj_distance, tau, soft)
     return ContactMaps(instant, instant.max(axis=0, initial=0.0), object_instant,
-                       object_instant.max(axis=0, initial=0.0), distance.astype(np.float32), tau, soft)
+                       object_instant.max(axis=0, initial=0.0), tau, soft)
 
 
 def model_contacts(hand, angles: np.ndarray, obj, tau: float = TAU_M, soft: bool = False,
@@ -127,22 +120,22 @@ def model_contacts(hand, angles: np.ndarray, obj, tau: float = TAU_M, soft: bool
 
 def render_values(model: PosedModel, angles: np.ndarray, values: np.ndarray, viewmats: torch.Tensor,
                   Ks: torch.Tensor, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Splat a per-Gaussian value (G,) as colour of the posed hand into C cameras.
-
-    Returns (value (C,H,W) of the visible surface, i.e. composited value over alpha, and
-    alpha (C,H,W)); pixels the hand does not cover have alpha 0 and value 0.
-    """
+    """Splat a per-Gaussian value (G,) as colour of the posed hand into C cameras: (composited
+    value (C,H,W), premultiplied by alpha as rasterize() returns it, and alpha (C,H,W)). The
+    value of the visible surface is their ratio where alpha > 0 (surface_value)."""
     from .splat.rasterize import rasterize
 
     with torch.no_grad():
         posed = model.pose(torch.as_tensor(np.asarray(angles, dtype=np.float32)))
-        colours = torch.as_tensor(np.asarray(values, dtype=np.float32))[:, None]
-        colours = colours.to(posed["means"].dtype).expand(-1, 1)
+        colours = torch.as_tensor(np.asarray(values), dtype=posed["means"].dtype)[:, None]
         out, alpha = rasterize(posed["means"], None, None, model.opacities, colours, viewmats, Ks, width, height,
                                covars=posed["covars"])
-    alpha = alpha[..., 0].cpu().numpy()
-    value = np.where(alpha > 1e-3, out[..., 0].cpu().numpy() / np.maximum(alpha, 1e-3), 0.0)
-    return value.astype(np.float32), alpha.astype(np.float32)
+    return out[..., 0].cpu().numpy(), alpha[..., 0].cpu().numpy()
+
+
+def surface_value(premultiplied: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The value of the visible surface: premultiplied value over alpha, 0 where nothing is drawn."""
+    return np.where(alpha > 1e-3, premultiplied / np.maximum(alpha, 1e-3), 0.0).astype(np.float32)
 
 
 def contact_image(value: np.ndarray, alpha: np.ndarray, image: np.ndarray | None = None) -> np.ndarray:

@@ -103,10 +103,10 @@ class Demo:
         c = self.config
         rig = make_rig("cube53", cameras=c.cameras, resolution=c.resolution, fps=c.fps, sync="software-trigger",
                        seed=c.seed)
-        self.rig_config = with_sim_subject(rig, obj=c.object, paint=True, subject=c.subject)
+        rig = with_sim_subject(rig, obj=c.object, paint=True, subject=c.subject)
         frames = 0
         for kind, name in TAKES:
-            result = record_take(self.rig_config, self.session, name, kind, c.durations[kind], force=True,
+            result = record_take(rig, self.session, name, kind, c.durations[kind], force=True,
                                  subject=c.subject, obj=c.object, use_leds=False, progress=False,
                                  label_frames=[1] if kind in ("object", "canonical") else [])
             if result.status != "complete":
@@ -132,8 +132,9 @@ class Demo:
     def calibrate(self) -> dict:
         from dataset_tools.calibration.formats import load_cameras
         from dataset_tools.cameras import CameraRig
+        from manus_capture.splat.takes import truth_cameras
 
-        truth = self._true_rig()
+        truth = truth_cameras(self.take["calibration"])
         if self.config.true_calibration:
             self.calib.mkdir(parents=True, exist_ok=True)
             truth.save(self.calib / "cameras.json")
@@ -150,16 +151,6 @@ class Demo:
         err = camera_errors(rig, truth)
         return {"centre_err_mm_median": float(np.median(err["centre_mm"])), "centre_err_mm_max": float(err["centre_mm"].max()),
                 "rotation_err_deg_max": float(err["rotation_deg"].max()), "reprojection_rms_px": result.rms_px}
-
-    def _true_rig(self):
-        import h5py
-
-        from dataset_tools.cameras import CameraRig
-
-        with h5py.File(self.take["calibration"] / "ground_truth.h5") as gt:
-            g = gt["cameras"]
-            ids = tuple(i.decode() if isinstance(i, bytes) else str(i) for i in g["ids"][()])
-            return CameraRig(ids, g["K"][()], g["dist"][()], g["R"][()], g["t"][()], g["size"][()])
 
     def annotate(self) -> dict:
         from dataset_tools.annotate import AnnotateOptions, annotate, take_key
@@ -189,7 +180,6 @@ class Demo:
             tick = np.clip(tick, 0, len(gt["hand/joints3d"]) - 1)
             return {"joints3d": gt["hand/joints3d"][()][tick], "joint_angles": gt["hand/joint_angles"][()][tick],
                     "bone_lengths": gt["hand/bone_lengths"][()]}
-
 
     def segment(self) -> dict:
         import h5py
@@ -278,18 +268,18 @@ class Demo:
         from dataset_tools.annotate import take_key
         from dataset_tools.dataset import read_dataset
         from manus_capture.contacts import model_contacts
-        from manus_capture.evaluate import canonical_pose, pick_views, score_contacts, spread_cameras
+        from manus_capture.evaluate import canonical_pose, mask_scores, pick_views, score_contacts, spread_cameras
         from manus_capture.template import capsule_template
 
         c = self.config
         canonical = canonical_pose(read_dataset(self.dataset)[take_key(self.take["canonical"])].joint_angles)
         views = pick_views(self.paint, c.eval_views)
         ours, pred = score_contacts(self.hand, canonical, self.maps.accumulated, self.rig, self.paint, views)
-        true_paint, _ = score_contacts(self.hand, canonical, self.maps.accumulated, self.rig, self.true_paint, views)
+        true_paint = mask_scores(pred, self.true_paint[views], ours.cameras)
         template = capsule_template(self.inputs.hand_frames.bone_lengths)
         base_maps = model_contacts(template, self.grasp_angles, self.object, c.tau)
         baseline, _ = score_contacts(template, canonical, base_maps.accumulated, self.rig, self.paint, views)
-        self.eval_views, self.eval_pred, self.canonical = views, pred, canonical
+        self.eval_views, self.eval_pred = views, pred
         ablation = {}
         for n in c.views:
             count = len(self.rig) if n == 0 or n >= len(self.rig) else n
@@ -301,7 +291,6 @@ class Demo:
             maps = model_contacts(hand, self.grasp_angles, obj, c.tau)
             ablation[count], _ = score_contacts(hand, canonical, maps.accumulated, self.rig, self.paint, views)
         self.scores = {"ours": ours, "baseline": baseline, "true_paint": true_paint}
-        self.ablation = ablation
         return {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
                 "baseline_f1": baseline.mean_f1, "contact_iou_vs_true_paint": true_paint.mean_iou,
                 "views": {str(k): v.mean_iou for k, v in sorted(ablation.items())}}
@@ -401,7 +390,7 @@ def run_demo(out: Path, config: DemoConfig = DemoConfig(), say: Callable[[str], 
     demo.summary = {**{k: evaluation[k] for k in ("contact_iou", "contact_f1", "baseline_iou", "baseline_f1",
                                                    "views")},
                     "scores": {k: v.to_json() for k, v in demo.scores.items()},
-                    "config": {k: v for k, v in dataclasses.asdict(config).items()},
+                    "config": dataclasses.asdict(config),
                     "stages": stages, "seconds": round(sum(s.seconds for s in demo.stages), 1)}
     figures = pictures(demo)
     write_html(out / "report.html", "manus-capture demo: simulated grasp capture", demo.summary, stages, figures)

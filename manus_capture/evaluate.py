@@ -15,9 +15,10 @@ import cv2
 import numpy as np
 import torch
 
-from dataset_tools.cameras import CameraRig
+from dataset_tools.cameras import CameraRig, scale_intrinsics
 
-from .contacts import PosedModel, render_values
+from .contacts import PosedModel, render_values, surface_value
+from .splat.trainer import world_to_camera
 
 MIN_PAINT_PX = 20       # a view "shows paint" with at least this many paint pixels
 DEFAULT_VIEWS = 10      # ground-truth views per sequence, as in the paper
@@ -96,14 +97,6 @@ def spread_cameras(rig: CameraRig, count: int) -> np.ndarray:
     return np.sort(np.array(chosen))
 
 
-def pinhole_cameras(rig: CameraRig) -> tuple[torch.Tensor, torch.Tensor]:
-    """World-to-camera matrices (C,4,4) and intrinsics (C,3,3) for the rasterizer."""
-    V = torch.eye(4).repeat(len(rig), 1, 1)
-    V[:, :3, :3] = torch.tensor(rig.R, dtype=torch.float32)
-    V[:, :3, 3] = torch.tensor(rig.t, dtype=torch.float32)
-    return V, torch.tensor(rig.K, dtype=torch.float32)
-
-
 def to_raw_pixels(images: np.ndarray, rig: CameraRig) -> np.ndarray:
     """Images (V,H,W) rendered with each camera's pinhole K, resampled onto its raw (distorted) pixel grid."""
     out = np.empty_like(images, dtype=np.float32)
@@ -130,17 +123,14 @@ def render_contacts(model: PosedModel, angles: np.ndarray, values: np.ndarray, r
     if len(sizes) != 1:
         raise EvaluateError(f"ground-truth views of one size are needed, got {sorted(sizes)}")
     (w, h), = sizes
-    V, K = pinhole_cameras(rig)
     s = int(supersample)
-    K[:, :2] *= s
-    K[:, :2, 2] += 0.5 * s - 0.5  # pixel centres at integer coordinates
-    value, alpha = render_values(model, angles, values, V, K, w * s, h * s)
-    # premultiplied by alpha: filter and resample both, then divide again
-    shrink = np.stack([cv2.resize(np.stack([v * a, a], -1), (w, h), interpolation=cv2.INTER_AREA)
+    K = torch.tensor(scale_intrinsics(rig.K, s), dtype=torch.float32)
+    value, alpha = render_values(model, angles, values, world_to_camera(rig.R, rig.t), K, w * s, h * s)
+    # both premultiplied: filter and resample them, then divide once
+    shrink = np.stack([cv2.resize(np.stack([v, a], -1), (w, h), interpolation=cv2.INTER_AREA)
                        for v, a in zip(value, alpha)])
     raw_alpha = to_raw_pixels(shrink[..., 1], rig)
-    raw_value = np.where(raw_alpha > 1e-3, to_raw_pixels(shrink[..., 0], rig) / np.maximum(raw_alpha, 1e-3), 0.0)
-    return raw_value, raw_alpha
+    return surface_value(to_raw_pixels(shrink[..., 0], rig), raw_alpha), raw_alpha
 
 
 def score_contacts(model: PosedModel, canonical: np.ndarray, accumulated: np.ndarray, rig: CameraRig,

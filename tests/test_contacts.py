@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from manus_capture.contacts import contact_value, hand_object_contacts, render_values
+from manus_capture.contacts import contact_value, hand_object_contacts, render_values, surface_value
 from manus_capture.evaluate import (EvaluateError, canonical_pose, mask_scores, pick_views, score_contacts,
                                     spread_cameras)
 from manus_capture.template import PointHand, capsule_template
@@ -112,7 +112,8 @@ def test_render_values_reads_back_a_constant(scene):
     K = torch.tensor([[[200.0, 0, 63.5], [0, 200.0, 63.5], [0, 0, 1]]])
     hand = scene["truth_hand"]
     angles = np.zeros(26)
-    value, alpha = render_values(hand, angles, np.full(len(hand), 0.25), V, K, 128, 128)
+    premultiplied, alpha = render_values(hand, angles, np.full(len(hand), 0.25), V, K, 128, 128)
+    value = surface_value(premultiplied, alpha)
     covered = alpha > 0.5
     assert covered.sum() > 500 and np.allclose(value[covered], 0.25, atol=1e-4)
 

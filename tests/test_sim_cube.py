@@ -125,16 +125,21 @@ def test_led_flash_shows_in_the_images():
     assert level[lit].min() > 1.5 * level[~lit].max()
 
 
+def read_every_camera(cube, rig, frames: int) -> None:
+    """Stream `frames` frames from each camera of the cube (what write_ground_truth then records)."""
+    for c in rig.cameras:
+        cam = cube.camera(c.id)
+        cam.open(); cam.start()
+        for _ in range(frames):
+            cam.read()
+
+
 @pytest.fixture(scope="module")
 def grasp_truth(tmp_path_factory):
     rig = small_rig(cameras=6, resolution=(160, 90), paint=True, object="mug")
     # a short take keeps the suite fast; the motion's phases scale with the duration
     cube = SimulatedCube(rig, "grasp", duration_s=0.25)
-    for c in rig.cameras:
-        cam = cube.camera(c.id)
-        cam.open(); cam.start()
-        for _ in range(30):
-            cam.read()
+    read_every_camera(cube, rig, 30)
     path = tmp_path_factory.mktemp("grasp") / "ground_truth.h5"
     hold = int(0.125 * rig.fps)  # the grasp holds the object at mid-take
     cube.write_ground_truth(path, label_frames=[hold])
@@ -173,11 +178,7 @@ def test_grasp_ground_truth_is_complete(grasp_truth):
 def test_canonical_take_shows_the_paint(tmp_path):
     rig = small_rig(cameras=6, resolution=(160, 90), paint=True, object="mug")
     cube = SimulatedCube(rig, "canonical", duration_s=0.5)
-    for c in rig.cameras:
-        cam = cube.camera(c.id)
-        cam.open(); cam.start()
-        for _ in range(3):
-            cam.read()
+    read_every_camera(cube, rig, 3)
     cube.write_ground_truth(tmp_path / "gt.h5", label_frames=[1])
     with h5py.File(tmp_path / "gt.h5") as f:
         labels = f["labels/image"][()]

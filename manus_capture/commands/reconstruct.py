@@ -217,7 +217,8 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     from manus_capture.splat.checkpoint import save_checkpoint
     from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
     from manus_capture.splat.takes import (crop_views, hand_frames_from_dataset, hand_frames_from_truth,
-                                           hand_masks_from_dataset, hand_views_from_take, still_frames)
+                                           hand_masks_from_dataset, hand_views_from_take, spread_frames,
+                                           still_frames)
 
     if truth == (dataset_path is not None):
         raise click.UsageError("give exactly one of --dataset and --truth")
@@ -227,12 +228,9 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     hand = hand_frames_from_truth(take) if truth else hand_frames_from_dataset(dataset_path, dataset_take)
     frames = _int_list(frames_arg, "--frames") or [int(f) for f in still_frames(hand.angles, count=poses)]
     if not frames:
-        # fitted angles carry the detector's noise, so they are never still to 1e-3: frame groups
-        # spread over the take instead, which is right for cameras triggered together
-        fitted = np.flatnonzero(np.isfinite(hand.angles).all(axis=1))
-        if len(fitted) < 2:
+        frames = [int(f) for f in spread_frames(hand.angles, poses)]
+        if len(frames) < 2:
             raise ReconstructInputError(f"{hand.source}: fewer than two frames with a fitted hand")
-        frames = [int(f) for f in fitted[np.unique(np.linspace(0, len(fitted) - 1, poses).round().astype(int))]]
         click.echo(f"no holds in {hand.source}: {len(frames)} frame groups spread over the take", err=True)
     test = _int_list(test_frames, "--test-frames") or frames[2::5]
     frames = list(dict.fromkeys(frames + test))
@@ -286,10 +284,11 @@ def render_command(checkpoint: Path, cameras_path: Path, scale: float, backgroun
     from tqdm import tqdm
 
     from dataset_tools.calibration.formats import load_cameras
+    from dataset_tools.cameras import scale_intrinsics
     from dataset_tools.fileio import write_atomic
     from manus_capture.splat.checkpoint import load_checkpoint
     from manus_capture.splat.hand import HandGaussians
-    from manus_capture.splat.trainer import render
+    from manus_capture.splat.trainer import render, world_to_camera
 
     rig = load_cameras(cameras_path)
     gaussians, extra, meta = load_checkpoint(checkpoint)
@@ -309,11 +308,8 @@ def render_command(checkpoint: Path, cameras_path: Path, scale: float, backgroun
         if path.exists() and not force:
             raise ReconstructInputError(f"{path}: exists (use --force to overwrite)")
         w, h = int(round(rig.size[i, 0] * scale)), int(round(rig.size[i, 1] * scale))
-        K = torch.tensor(rig.K[i], dtype=torch.float32)
-        K[:2] *= scale
-        K[:2, 2] += 0.5 * scale - 0.5
-        V = torch.eye(4)
-        V[:3, :3], V[:3, 3] = torch.tensor(rig.R[i]), torch.tensor(rig.t[i])
+        K = torch.tensor(scale_intrinsics(rig.K[i], scale), dtype=torch.float32)
+        V = world_to_camera(rig.R[i:i + 1], rig.t[i:i + 1])[0]
         with torch.no_grad():
             if hand is None:
                 rgb, _ = render(gaussians, V[None], K[None], w, h, bg)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dataset_tools.cameras import CameraRig
+from dataset_tools.cameras import CameraRig, scale_intrinsics
 from dataset_tools.take import Take
 
 from .trainer import Views
@@ -156,9 +156,7 @@ def undistort(rig: CameraRig, images: Sequence[np.ndarray], masks: Sequence[np.n
                                  f"the calibration says {w}x{h}")
         size = (max(int(round(w * scale)), 1), max(int(round(h * scale)), 1))
         sx, sy = size[0] / w, size[1] / h
-        # Pixel centres at integer coordinates: x' = (x + 0.5) s - 0.5.
-        Ks.append(np.array([[K[0, 0] * sx, K[0, 1] * sx, (K[0, 2] + 0.5) * sx - 0.5],
-                            [0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5], [0, 0, 1]]))
+        Ks.append(scale_intrinsics(K, sx, sy))
         plain = cv2.undistort(image, K, dist)
         out_images.append(cv2.resize(plain, size, interpolation=cv2.INTER_AREA)[..., ::-1] / np.float32(255))
         if masks is not None:
@@ -347,6 +345,16 @@ def hand_masks_from_dataset(dataset_path: str | os.PathLike, take_key: str | Non
         order = [mask_cams.index(c) for c in cameras]
         masks = group["masks/hand"]
         return np.stack([masks[i][order] for i in index])
+
+
+def spread_frames(angles: np.ndarray, count: int) -> np.ndarray:
+    """Up to `count` frames with a fitted hand (no NaN angle), spread evenly over the take. Fitted
+    angles carry the detector's noise and are never still to still_frames' tolerance; with cameras
+    triggered together any frame group shows one pose in every view."""
+    fitted = np.flatnonzero(np.isfinite(np.asarray(angles, np.float64)).all(axis=1))
+    if not len(fitted):
+        return fitted
+    return fitted[np.unique(np.linspace(0, len(fitted) - 1, count).round().astype(int))]
 
 
 def still_frames(angles: np.ndarray, tolerance: float = 1e-3, count: int | None = None) -> np.ndarray:

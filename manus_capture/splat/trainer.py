@@ -24,6 +24,16 @@ from .rasterize import rasterize
 from .strategy import DensifyStrategy, nearest_pixels
 
 
+def world_to_camera(R, t) -> torch.Tensor:
+    """4x4 world-to-camera matrices (C,4,4) float32 from CameraRig-style R (C,3,3), t (C,3) of
+    any array type (np.array copies: CameraRig's arrays are read-only, which torch warns about)."""
+    R, t = (x.float() if torch.is_tensor(x) else torch.from_numpy(np.array(x, dtype=np.float32)) for x in (R, t))
+    viewmats = torch.eye(4).repeat(len(R), 1, 1)
+    viewmats[:, :3, :3] = R
+    viewmats[:, :3, 3] = t
+    return viewmats
+
+
 @dataclass
 class Views:
     """Calibrated views: images (V,H,W,3) in [0,1], Ks (V,3,3), viewmats (V,4,4), masks (V,H,W) or
@@ -40,14 +50,10 @@ class Views:
                  masks: torch.Tensor | None = None, ids=None) -> "Views":
         """Views from CameraRig-style K, R, t (any array type; float32 tensors are made)."""
         # np.array copies: CameraRig's arrays are read-only, which torch warns about
-        K, R, t = (x.float() if torch.is_tensor(x) else torch.from_numpy(np.array(x, dtype=np.float32))
-                   for x in (K, R, t))
-        viewmats = torch.eye(4).repeat(len(K), 1, 1)
-        viewmats[:, :3, :3] = R
-        viewmats[:, :3, 3] = t
+        K = K.float() if torch.is_tensor(K) else torch.from_numpy(np.array(K, dtype=np.float32))
         images = torch.as_tensor(images, dtype=torch.float32)
         masks = None if masks is None else torch.as_tensor(masks, dtype=torch.bool)
-        return cls(images, K, viewmats, masks, None if ids is None else tuple(ids))
+        return cls(images, K, world_to_camera(R, t), masks, None if ids is None else tuple(ids))
 
     def __len__(self) -> int:
         return self.images.shape[0]

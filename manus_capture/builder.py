@@ -13,13 +13,30 @@ from pathlib import Path
 import numpy as np
 
 HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PSNR
-# Contact is measured between Gaussian centres, so the hand's centres should lie on its surface.
-# Many small Gaussians with faster centre steps get closer in hundreds of CPU steps: on the
-# 12-camera demo, contact IoU against the paint rose from 0.04 (1200 Gaussians of free size) to
-# 0.10 (4000 of at most 2 mm); the capsule template scores 0.19 there.
-HAND_PER_BONE = 200
-HAND_MAX_SCALE_M = 0.002
-HAND_MEANS_LR = 1.6e-3
+# Contact is measured between Gaussian centres, so both models' centres should lie on their
+# surfaces: both are surfels (Gaussians.surfels), the hand's starting on the capsule template and
+# moving with 10x faster centre steps than 3DGS's, so that hundreds of CPU steps fit its shape.
+HAND_MEANS_LR = 4e-4
+
+
+def surface_hand(bone_lengths, sh_degree: int = 1):
+    """A MANUS-Hand model of surfels on the capsule template of the subject's bone lengths."""
+    from manus_capture.splat.hand import HandGaussians
+    from manus_capture.splat.trainer import SURFEL_THIN_M
+    from manus_capture.template import capsule_template
+
+    template = capsule_template(bone_lengths)
+    return HandGaussians.on_surface(bone_lengths, template.points_rest, template.normals_rest, template.bone,
+                                    SURFEL_THIN_M, sh_degree=sh_degree)
+
+
+def surface_hand_config(iterations: int, **changes):
+    """HandConfig.surfels with the faster centre steps of HAND_MEANS_LR."""
+    from manus_capture.splat.hand import HandConfig
+    from manus_capture.splat.trainer import LearningRates
+
+    lr = LearningRates(means=HAND_MEANS_LR, means_final=HAND_MEANS_LR / 100, sh0=1e-2, log_scales=1e-2)
+    return HandConfig.surfels(iterations, **{"lr": lr, **changes})
 
 
 class BuildError(ValueError):
@@ -85,33 +102,31 @@ class ModelInputs:
         with `evaluate`, held-out-pose PSNR of the hand and training-view PSNR of the object."""
         import torch
 
-        from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
+        from manus_capture.splat.hand import evaluate_hand, train_hand
         from manus_capture.splat.takes import crop_views, hand_views_from_take, object_views_from_take
-        from manus_capture.splat.trainer import LearningRates, ObjectConfig, train_object
+        from manus_capture.splat.trainer import SURFACE_EPS2D, ObjectConfig, train_object
         from manus_capture.splat.trainer import evaluate as evaluate_object
 
         cams = np.asarray(cams)
         sub = self.rig.subset([self.rig.ids[i] for i in cams])
         torch.manual_seed(self.seed)
-        # CPU settings (ObjectConfig.fast, HandConfig.fast): hundreds of steps on windows around
-        # the masks, scored on the whole views
+        # CPU settings (ObjectConfig.surfels, HandConfig.surfels): hundreds of steps on windows
+        # around the masks, scored on the whole views
         views = object_views_from_take(self.object_take, sub, masks=self.object_masks[cams], scale=self.scale)
-        obj = train_object(crop_views(views), ObjectConfig.fast(self.object_iterations, seed=self.seed),
+        obj = train_object(crop_views(views), ObjectConfig.surfels(self.object_iterations, seed=self.seed),
                            progress=False).gaussians
         poses, hand_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.train_rows,
                                                  masks=self.train_masks[:, cams], scale=self.scale)
-        hand = HandGaussians.initialize(self.hand_frames.bone_lengths, per_bone=HAND_PER_BONE, sh_degree=1,
-                                        seed=self.seed)
+        hand = surface_hand(self.hand_frames.bone_lengths)
         train_hand(hand, poses, [crop_views(v) for v in hand_views],
-                   HandConfig.fast(self.hand_iterations, seed=self.seed, max_scale=HAND_MAX_SCALE_M,
-                                   lr=LearningRates(means=HAND_MEANS_LR, means_final=HAND_MEANS_LR / 100,
-                                                    sh0=1e-2, log_scales=1e-2)), progress=False)
+                   surface_hand_config(self.hand_iterations, seed=self.seed), progress=False)
         metrics = {}
         if evaluate:
             test_poses, test_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.test_rows,
                                                           masks=self.test_masks[:, cams],
                                                           scale=self.scale)
-            hand_scores, object_scores = evaluate_hand(hand, test_poses, test_views), evaluate_object(obj, views)
+            hand_scores = evaluate_hand(hand, test_poses, test_views, eps2d=SURFACE_EPS2D)
+            object_scores = evaluate_object(obj, views, eps2d=SURFACE_EPS2D)
             metrics = {"hand_psnr_heldout_poses_db": hand_scores["psnr"],
                        "hand_psnr_heldout_on_mask_db": hand_scores["psnr_mask"],
                        "object_psnr_train_views_db": object_scores["psnr"],

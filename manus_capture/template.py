@@ -33,9 +33,10 @@ class PointHand:
     deviation `sigma`: the capsule template, or any surface sampled on the bones."""
 
     def __init__(self, skeleton: HandSkeleton, points_rest: np.ndarray, bone: np.ndarray, sigma: float,
-                 opacity: float = 0.99) -> None:
+                 opacity: float = 0.99, normals_rest: np.ndarray | None = None) -> None:
         self.skeleton = skeleton
         self.points_rest = np.asarray(points_rest, dtype=np.float64)
+        self.normals_rest = None if normals_rest is None else np.asarray(normals_rest, dtype=np.float64)
         self.bone = np.asarray(bone, dtype=np.int64)
         self.sigma = float(sigma)
         self.opacities = torch.full((len(self.points_rest),), float(opacity))
@@ -66,14 +67,15 @@ def capsule_template(bone_lengths=None, spacing: float = SPACING_M) -> PointHand
     tip = np.arange(20) % 4 == 3
     # the fingertip keypoint is the end of the finger: the distal capsule stops short of it
     b = np.where(tip[:, None], b - radius[:, None] * (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True), b)
-    points, bones = [], []
+    points, normals, bones = [], [], []
     for k in range(20):
-        p, _ = capsule_surface(a[k], b[k], float(radius[k]), spacing)
+        p, n = capsule_surface(a[k], b[k], float(radius[k]), spacing)
         points.append(p)
+        normals.append(n)
         bones.append(np.full(len(p), k))
-    points, bones = np.concatenate(points), np.concatenate(bones)
+    points, normals, bones = np.concatenate(points), np.concatenate(normals), np.concatenate(bones)
     # only the outer surface of the union: drop points buried in another bone's capsule
     d = capsule_distances(points, a, b, radius)
     d[np.arange(len(points)), bones] = np.inf
     keep = d.min(axis=1) > -1e-4
-    return PointHand(skeleton, points[keep], bones[keep], 0.5 * spacing)
+    return PointHand(skeleton, points[keep], bones[keep], 0.5 * spacing, normals_rest=normals[keep])

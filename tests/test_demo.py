@@ -59,14 +59,20 @@ def test_stages_agree_with_the_simulators_truth(demo):
     assert summary["baseline_iou"] > 0.15
 
 
-@pytest.mark.xfail(strict=True, reason="Gaussian models trained for 300 CPU iterations hold their centres "
-                                       "millimetres inside the surface they draw; their contacts fall short "
-                                       "of the capsule template (docs/contacts.md)")
-def test_gaussian_hand_beats_the_template_and_more_views_help(demo):
+def test_more_views_give_better_contacts(demo):
+    """The camera ablation: models rebuilt from 3, 6 and all 12 cameras (measured: 0.06, 0.25, 0.26
+    IoU on this session's takes with surfels; 0.0, 0.11, 0.10 with the round Gaussians before)."""
     _, summary, _ = demo
     views = [summary["views"][k] for k in ("3", "6", "12")]
+    assert views[0] < views[1] < views[2], views
+
+
+@pytest.mark.xfail(strict=True, reason="the simulated hand is capsules on the same skeleton as the capsule template, "
+                                       "which is within a millimetre of it; the learned surfels are as close on "
+                                       "average with twice the spread, and score a little lower (docs/contacts.md)")
+def test_gaussian_hand_beats_the_template(demo):
+    _, summary, _ = demo
     assert summary["contact_iou"] > summary["baseline_iou"]
-    assert views[0] < views[1] < views[2]
 
 
 def test_commands_on_the_demo_session(demo, tmp_path):

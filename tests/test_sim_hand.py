@@ -196,6 +196,18 @@ def test_subjects_differ_in_size_and_proportion():
         make_hand("s99")
 
 
+def test_subjects_differ_in_girth_beyond_their_size():
+    """A subject's flesh is SUBJECT_GIRTH times as thick as the average hand of the same bones."""
+    from rig.sim.hand import SUBJECT_GIRTH, HandModel
+
+    for name in SUBJECTS:
+        subject = make_hand(name)
+        average = HandModel(subject.skeleton)
+        assert np.allclose(subject.capsule_radius, SUBJECT_GIRTH[name] * average.capsule_radius)
+        assert np.allclose(subject.capsule_rest_a, average.capsule_rest_a)
+    assert max(SUBJECT_GIRTH.values()) - min(SUBJECT_GIRTH.values()) >= 0.15
+
+
 def test_albedo_is_paint_only_where_painted(hand):
     pts, _ = hand.surface_points(np.zeros(26))
     paint = np.zeros(hand.n_points, bool)

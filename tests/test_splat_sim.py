@@ -172,7 +172,7 @@ def test_reconstruct_hand_command(small_hand_take, tmp_path):
     cams = ",".join(rig.ids[:5])
     args = ["reconstruct", "hand", "--cameras", str(tmp_path / "cameras.json"), "--take", str(hand_take), "--truth",
             "--only-cameras", cams, "--frames", "0,1,2,4,5", "--test-frames", "3", "--scale", "1",
-            "--iterations", "20", "--per-bone", "10", "-o", str(out)]
+            "--iterations", "20", "--init", "bones", "--per-bone", "10", "-o", str(out)]
     runner = CliRunner()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -250,8 +250,8 @@ def test_reconstruct_hand_command_from_annotate(small_hand_take, tmp_path):
     def args(frames, out):
         return ["reconstruct", "hand", "--cameras", str(tmp_path / "cameras.json"), "--take", str(small_hand_take),
                 "--dataset", str(tmp_path / "D.h5"), "--masks", "truth", "--frames", ",".join(map(str, frames)),
-                "--test-frames", str(fitted[3]), "--scale", "1", "--iterations", "10", "--per-bone", "5",
-                "-o", str(tmp_path / out)]
+                "--test-frames", str(fitted[3]), "--scale", "1", "--iterations", "10", "--init", "bones",
+                "--per-bone", "5", "-o", str(tmp_path / out)]
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

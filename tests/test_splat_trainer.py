@@ -138,7 +138,7 @@ def test_reconstruct_command_trains_and_renders(tmp_path, known_scene):
         cv2.imwrite(str(tmp_path / "masks" / f"{cam}.png"), v.masks[i].numpy().astype(np.uint8) * 255)
     args = ["reconstruct", "object", "--cameras", str(tmp_path / "cameras.json"), "--images",
             str(tmp_path / "images"), "--masks", str(tmp_path / "masks"), "--test-cameras", "c00,c05,c10",
-            "--scale", "1", "--iterations", "150", "--points", "300", "--sh-degree", "0",
+            "--scale", "1", "--iterations", "150", "--points", "300", "--sh-degree", "0", "--no-surfels",
             "-o", str(tmp_path / "object.safetensors")]
     runner = CliRunner()
     with warnings.catch_warnings():

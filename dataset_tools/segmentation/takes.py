@@ -65,6 +65,7 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_
     from ..annotate import sync_groups
 
     take, background = Take(take_path), Take(background_path)
+    kind = take.meta.get("kind")
     report: dict = {"warnings": []}
     missing = [c for c in take.cameras if c not in rig.ids]
     if missing:
@@ -75,8 +76,9 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_
     if object_path is not None:
         images, bgs = _object_frames(Take(object_path), take.cameras, backgrounds)
         # a canonical take has no object in it, and the paint on its hand has the (painted)
-        # object's colour: there every foreground pixel is hand
-        model = None if take.meta.get("kind") == "canonical" else object_colour(images, bgs)
+        # object's colour: there every foreground pixel is hand; in the object take every one is
+        # object (a colour split would give its skin-coloured shading to a hand that is not there)
+        model = None if kind in ("canonical", "object") else object_colour(images, bgs)
         key = paint_key_from_object(images, bgs) if swatch is None else None
     if swatch is not None:
         key = PaintKey.from_swatch(swatch)
@@ -93,11 +95,12 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_
                 images[c] = take.read_frame(cam, int(frame_index[t, c]))
             present.append(frame_index[t, c] >= 0)
         bgs = [b if p else None for b, p in zip(backgrounds, present)]
-        hand[t], obj[t], _ = hand_object_masks(images, bgs, rig, model)
+        found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
+        hand[t], obj[t] = (found_object, found_hand) if kind == "object" else (found_hand, found_object)
         if progress:
             progress(1)
     paint = middle = None
-    if take.meta.get("kind") == "canonical":
+    if kind == "canonical":
         if key is None:
             report["warnings"].append("canonical take without --object-take or --swatch: no paint masks")
         else:

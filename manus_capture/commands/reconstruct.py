@@ -135,9 +135,14 @@ def _common_options(f):
 @click.option("--iterations", type=click.IntRange(1), default=1000, show_default=True)
 @click.option("--points", type=click.IntRange(1), default=3000, show_default=True,
               help="Initial Gaussians in the visual hull.")
+@click.option("--surfels/--no-surfels", default=True, show_default=True,
+              help="With masks: flat Gaussians on the visual hull's surface, at most 2 mm wide, whose centres "
+                   "stay on the object's surface (what `contacts` measures between); --no-surfels fills the "
+                   "hull with round Gaussians of any size (semi-transparent or large scenes).")
 @_common_options
 def object_command(take: Path | None, frame: int | None, images_dir: Path | None, masks_arg: str | None,
-                   test_cameras: str, iterations: int, points: int, cameras_path: Path, only_cameras: str,
+                   test_cameras: str, iterations: int, points: int, surfels: bool, cameras_path: Path,
+                   only_cameras: str,
                    scale: float, crop_margin: int, sh_degree: int, background: str, lpips_weights: Path | None,
                    lpips_net: str, seed: int, output: Path, force: bool) -> None:
     """Fit static Gaussians to the calibrated views of an object; print held-out PSNR/SSIM."""
@@ -171,9 +176,11 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
     if not train_idx:
         raise click.UsageError("--test-cameras holds out every camera")
 
-    cfg = ObjectConfig.fast(iterations, sh_degree=sh_degree, init_points=points, background=bg,
-                            lpips_weights=None if lpips_weights is None else str(lpips_weights),
-                            lpips_net=lpips_net, seed=seed)
+    # surfels need masks to find the surface
+    make_config = ObjectConfig.surfels if surfels and views.masks is not None else ObjectConfig.fast
+    cfg = make_config(iterations, sh_degree=sh_degree, init_points=points, background=bg,
+                      lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net,
+                      seed=seed)
     start = time.perf_counter()
     result = train_object(crop_views(views.subset(train_idx), crop_margin), cfg)
     elapsed = time.perf_counter() - start
@@ -184,7 +191,7 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
     summary = f"{output}: {len(result.gaussians)} Gaussians from {len(train_idx)} views, {elapsed:.0f} s"
     if test_idx:
         summary += "; " + _scores_text(evaluate(result.gaussians, views.subset(test_idx), bg,
-                                                _lpips(lpips_weights, lpips_net)))
+                                                _lpips(lpips_weights, lpips_net), cfg.eps2d))
     click.echo(summary)
 
 
@@ -206,14 +213,19 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
               help="Hand masks: those `segment` stored in --dataset for the take (default with --dataset), "
                    "or the labels of a simulated take's ground_truth.h5 (default with --truth).")
 @click.option("--iterations", type=click.IntRange(1), default=1000, show_default=True)
+@click.option("--init", "init", type=click.Choice(["surface", "bones"]), default="surface", show_default=True,
+              help="surface: surfels on the capsule template, whose centres stay on the hand's surface "
+                   "(what `contacts` measures between); bones: round Gaussians around every bone.")
 @click.option("--per-bone", type=click.IntRange(1), default=60, show_default=True,
-              help="Initial Gaussians around each of the 20 bones.")
+              help="With --init bones: initial Gaussians around each of the 20 bones.")
 @_common_options
 def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None, truth: bool, frames_arg: str,
-                 poses: int, test_frames: str, masks_arg: str | None, iterations: int, per_bone: int, cameras_path: Path,
+                 poses: int, test_frames: str, masks_arg: str | None, iterations: int, init: str, per_bone: int,
+                 cameras_path: Path,
                  only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
                  lpips_weights: Path | None, lpips_net: str, seed: int, output: Path, force: bool) -> None:
     """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
+    from manus_capture.builder import surface_hand, surface_hand_config
     from manus_capture.splat.checkpoint import save_checkpoint
     from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
     from manus_capture.splat.takes import (crop_views, hand_frames_from_dataset, hand_frames_from_truth,
@@ -246,9 +258,13 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
         masks = "truth"
     angles, views = hand_views_from_take(take, rig, hand, frames, masks, scale)
 
-    model = HandGaussians.initialize(hand.bone_lengths, per_bone=per_bone, sh_degree=sh_degree, seed=seed)
-    cfg = HandConfig.fast(iterations, sh_degree=sh_degree, background=bg, seed=seed,
-                          lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net)
+    settings = dict(sh_degree=sh_degree, background=bg, seed=seed,
+                    lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net)
+    if init == "surface":
+        model, cfg = surface_hand(hand.bone_lengths, sh_degree), surface_hand_config(iterations, **settings)
+    else:
+        model = HandGaussians.initialize(hand.bone_lengths, per_bone=per_bone, sh_degree=sh_degree, seed=seed)
+        cfg = HandConfig.fast(iterations, **settings)
     start = time.perf_counter()
     train_hand(model, angles[train_rows], [crop_views(views[i], crop_margin) for i in train_rows], cfg)
     elapsed = time.perf_counter() - start
@@ -261,7 +277,7 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     summary = f"{output}: {len(model)} Gaussians from {n_poses} poses ({n_views} views), {elapsed:.0f} s"
     test_rows = [i for i in range(len(frames)) if i not in train_rows]
     if test_rows:
-        scores = evaluate_hand(model, angles[test_rows], [views[i] for i in test_rows], bg)
+        scores = evaluate_hand(model, angles[test_rows], [views[i] for i in test_rows], bg, cfg.eps2d)
         summary += f"; {len(test_rows)} held-out poses: " + _scores_text(scores)
     click.echo(summary)
 

@@ -39,6 +39,17 @@ def covariance(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     return M @ M.transpose(-1, -2)
 
 
+def quats_facing(normals: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions (N,4) of the shortest rotations that take the z axis to `normals` (N,3):
+    a Gaussian with them has its third axis along the normal."""
+    n = normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    # half-way quaternion (1 + z.n, z x n), normalized; z x n = (-n_y, n_x, 0)
+    q = torch.stack([1 + n[:, 2], -n[:, 1], n[:, 0], torch.zeros_like(n[:, 0])], dim=-1)
+    opposite = q[:, 0] < 1e-6  # n = -z: half a turn about x
+    q[opposite] = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
+    return q / q.norm(dim=-1, keepdim=True)
+
+
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
     """The DC coefficient that evaluates to colour `rgb` (with the +0.5 offset of eval_sh)."""
     return (rgb - 0.5) / SH_C0
@@ -95,6 +106,26 @@ class Gaussians(torch.nn.Module):
         logit = math.log(opacity / (1 - opacity))
         return cls(points, quats, scale.log()[:, None].expand(n, 3),
                    torch.full((n,), logit, dtype=dtype, device=device), sh, sh_degree)
+
+    @classmethod
+    def surfels(cls, points: torch.Tensor, normals: torch.Tensor, colors: torch.Tensor | None = None,
+                sh_degree: int = 3, opacity: float = 0.5, thin: float = 3e-4) -> "Gaussians":
+        """Flat Gaussians on a surface: discs at `points` (N,3) as wide as the distance to their
+        neighbours, with their third axis `thin` (m) along `normals` (N,3) (see cap_scales)."""
+        gaussians = cls.from_points(points, colors, sh_degree, opacity=opacity)
+        with torch.no_grad():
+            gaussians.params["quats"].copy_(quats_facing(normals.to(points.dtype)))
+            gaussians.params["log_scales"][:, 2].clamp_(max=math.log(thin))
+        return gaussians
+
+    @torch.no_grad()
+    def cap_scales(self, max_scale: float | None = None, thin: float | None = None) -> None:
+        """Clamp every axis to `max_scale` and the third one (a surfel's normal) to `thin` (m)."""
+        log_scales = self.params["log_scales"]
+        if max_scale is not None:
+            log_scales.clamp_(max=math.log(max_scale))
+        if thin is not None:
+            log_scales[:, 2].clamp_(max=math.log(thin))
 
     def __len__(self) -> int:
         return self.params["means"].shape[0]

@@ -32,11 +32,11 @@ from dataset_tools.hand.skeleton import BONES, HandSkeleton
 
 from .gaussians import Gaussians
 from .losses import LossWeights, load_lpips
-from .rasterize import rasterize
+from .rasterize import EPS2D, rasterize
 from .sh import eval_sh
 from .strategy import DensifyStrategy
-from .trainer import (LearningRates, Views, add_scores, decay_means_lr, image_loss, make_optimizer,
-                      optimize_step)
+from .trainer import (LearningRates, Views, add_scores, decay_means_lr, image_loss, make_optimizer, optimize_step,
+                      surfel_settings)
 
 N_BONES = 20
 
@@ -149,6 +149,34 @@ class HandGaussians(torch.nn.Module):
         means, _ = sample_around_bones(joints, per_bone, spread, radius, margin, gen)
         colours = torch.tensor(colour, dtype=torch.float32).expand(len(means), 3)
         gaussians = Gaussians.from_points(means, colours, sh_degree, opacity=opacity)
+        return cls._with_grid(gaussians, skeleton, joints, resolution, padding, smooth)
+
+    @classmethod
+    def on_surface(cls, bone_lengths, points, normals, bones, thin: float, margin: float = 0.004,
+                   sh_degree: int = 3, resolution: int = 64, padding: float = 0.02, smooth: int = 2,
+                   colour=(0.8, 0.6, 0.5), opacity: float = 0.5) -> "HandGaussians":
+        """A fresh model of surfels (Gaussians.surfels) on a given rest-pose surface: points (N,3)
+        with outward normals (N,3), each on bone `bones` (N,), e.g. a capsule template's. Points
+        closer than `margin` to being nearer another finger's bone than their own are left out, as
+        in sample_around_bones."""
+        skeleton = HandSkeleton(bone_lengths)
+        joints = torch.as_tensor(skeleton.rest_joints(), dtype=torch.float32)
+        points = torch.as_tensor(np.asarray(points), dtype=torch.float32)
+        normals = torch.as_tensor(np.asarray(normals), dtype=torch.float32)
+        bones = torch.as_tensor(np.asarray(bones), dtype=torch.long)
+        ends = torch.as_tensor(BONES, dtype=torch.long)
+        d = point_segment_distance(points, joints[ends[:, 0]], joints[ends[:, 1]])
+        own = d.gather(1, bones[:, None])[:, 0]
+        other = torch.where((~bone_neighbours())[bones], d, torch.inf).amin(dim=1)
+        keep = own + margin <= other
+        colours = torch.tensor(colour, dtype=torch.float32).expand(int(keep.sum()), 3)
+        gaussians = Gaussians.surfels(points[keep], normals[keep], colours, sh_degree, opacity, thin)
+        return cls._with_grid(gaussians, skeleton, joints, resolution, padding, smooth)
+
+    @classmethod
+    def _with_grid(cls, gaussians: Gaussians, skeleton: HandSkeleton, joints: torch.Tensor, resolution: int,
+                   padding: float, smooth: int) -> "HandGaussians":
+        means = gaussians.means.detach()
         lo = torch.minimum(means.min(0).values, joints.min(0).values) - padding
         hi = torch.maximum(means.max(0).values, joints.max(0).values) + padding
         grid = nearest_bone_grid(joints, lo, hi, resolution, smooth)
@@ -232,6 +260,8 @@ class HandConfig:
     chunk_elements: int | None = None
     seed: int = 0
     max_scale: float | None = None   # metres; caps every Gaussian's axes after each step
+    thin: float | None = None        # metres; caps the third axis (surfels, HandGaussians.on_surface)
+    eps2d: float = EPS2D              # see rasterize(); the blur every splat gets, in pixels^2
 
     @classmethod
     def fast(cls, iterations: int = 400, **changes) -> "HandConfig":
@@ -240,6 +270,11 @@ class HandConfig:
         base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), densify=None,
                     skin_lr=0.0, lr=LearningRates(sh0=1e-2, log_scales=1e-2))
         return cls(**{**base, **changes})
+
+    @classmethod
+    def surfels(cls, iterations: int = 400, **changes) -> "HandConfig":
+        """`fast` for a model of surfels (HandGaussians.on_surface): see ObjectConfig.surfels."""
+        return cls.fast(iterations, **{**surfel_settings(), **changes})
 
 
 def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], config: HandConfig | None = None,
@@ -274,15 +309,15 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
         decay_means_lr(optimizer, cfg.lr, scene_scale, step, cfg.iterations)
         degree = min(cfg.sh_degree, step // cfg.sh_increase_every)
         view = views[p]
-        rgb, _, meta = model.render(poses[p], view.viewmats[v:v + 1], view.Ks[v:v + 1], view.width, view.height,
-                                    bg, sh_degree=degree, return_meta=True, chunk_elements=cfg.chunk_elements)
-        loss, parts = image_loss(rgb, targets[p][v:v + 1], model.gaussians.scales, cfg.weights, lpips)
+        rgb, alpha, meta = model.render(poses[p], view.viewmats[v:v + 1], view.Ks[v:v + 1], view.width,
+                                        view.height, bg, sh_degree=degree, return_meta=True,
+                                        chunk_elements=cfg.chunk_elements, eps2d=cfg.eps2d)
+        loss, parts = image_loss(rgb, targets[p][v:v + 1], model.gaussians.scales, cfg.weights, lpips, alpha,
+                                 None if view.masks is None else view.masks[v:v + 1])
         record = optimize_step(model.gaussians, optimizer, strategy, loss, parts, meta, step)
-        if cfg.max_scale is not None:
-            # small splats cannot stand for the hand from inside it: to cover the silhouettes
-            # their centres must move out to the surface, where contact is measured
-            with torch.no_grad():
-                model.gaussians.params["log_scales"].clamp_(max=math.log(cfg.max_scale))
+        # small splats cannot stand for the hand from inside it: to cover the silhouettes their
+        # centres must stay on the surface, where contact is measured
+        model.gaussians.cap_scales(cfg.max_scale, cfg.thin)
         history.append(record)
         if step % 10 == 0 or step == cfg.iterations:
             bar.set_postfix(loss=f"{record['loss']:.4f}", n=len(model))
@@ -291,15 +326,15 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
 
 @torch.no_grad()
 def evaluate_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views],
-                  background=(0.0, 0.0, 0.0)) -> dict[str, float]:
+                  background=(0.0, 0.0, 0.0), eps2d: float = EPS2D) -> dict[str, float]:
     """Mean PSNR (dB), SSIM and, with masks, psnr_mask (see trainer.evaluate) over every view of
-    every given pose."""
+    every given pose, rendered with the splat blur `eps2d` the model was trained with."""
     bg = torch.tensor(background, dtype=torch.float32, device=model.gaussians.means.device)
     scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_mask": []}
     for p, view in enumerate(views):
         if not len(view):
             continue
-        rgb, _ = model.render(poses[p], view.viewmats, view.Ks, view.width, view.height, bg)
+        rgb, _ = model.render(poses[p], view.viewmats, view.Ks, view.width, view.height, bg, eps2d=eps2d)
         add_scores(scores, rgb, view, bg)
     return {k: sum(v) / len(v) for k, v in scores.items() if v}
 

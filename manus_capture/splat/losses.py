@@ -27,6 +27,7 @@ class LossWeights:
     ssim: float = 0.1
     lpips: float = 0.1
     isotropy: float = 0.1
+    mask: float = 0.0   # L1 of the rendered alpha against the mask (not in MANUS's loss)
 
 
 def l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

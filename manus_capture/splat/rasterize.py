@@ -41,6 +41,7 @@ ALPHA_MAX = 0.999
 TRANSMITTANCE_MIN = 1e-4
 SIGMA_CUTOFF = 4.5  # q / 2 at 3 sigma
 FOV_CLAMP = 1.3  # the Jacobian is taken no further out than 1.3 times the half field of view
+EPS2D = 0.3  # 3DGS's splat blur (pixels^2): no splat is drawn thinner than about a pixel
 
 
 def unpack_covars(covars: torch.Tensor) -> torch.Tensor:
@@ -56,7 +57,7 @@ def unpack_covars(covars: torch.Tensor) -> torch.Tensor:
 
 def project(means: torch.Tensor, covars: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
             width: int, height: int, near_plane: float = 0.01, far_plane: float = 1e10,
-            eps2d: float = 0.3) -> dict[str, torch.Tensor]:
+            eps2d: float = EPS2D) -> dict[str, torch.Tensor]:
     """EWA projection of N Gaussians into C cameras.
 
     Returns means2d (C,N,2) pixels, conics (C,N,3) = the inverse 2D covariance as (a, b, c) of
@@ -327,7 +328,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
               opacities: torch.Tensor, colors: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
               width: int, height: int, background: torch.Tensor | None = None,
               covars: torch.Tensor | None = None, sh_degree: int | None = None,
-              near_plane: float = 0.01, far_plane: float = 1e10, eps2d: float = 0.3, tile_size: int = 8,
+              near_plane: float = 0.01, far_plane: float = 1e10, eps2d: float = EPS2D, tile_size: int = 8,
               backend: str = "auto", chunk_elements: int | None = None, return_meta: bool = False):
     """Render N Gaussians into C cameras: (rgb (C,H,W,D), alpha (C,H,W,1)) [, meta].
 

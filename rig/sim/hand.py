@@ -30,6 +30,10 @@ SUBJECTS: dict[str, np.ndarray] = {
     # Larger hand with a long palm, short fingers and a long thumb.
     "s03": DEFAULT_BONE_LENGTHS * (1.12 * _PALM + 1.02 * _FINGER + 1.10 * _THUMB),
 }
+# Thickness of the flesh (every capsule's radius) against the average hand of the same size: hands
+# of one length differ in girth (finger circumference varies by about 10 % between adults), which
+# bone lengths do not tell; a template that knows only the bones misses it.
+SUBJECT_GIRTH: dict[str, float] = {"s01": 1.0, "s02": 0.92, "s03": 1.12}
 
 SEGMENTS = {f: ("metacarpal", "proximal", "distal") if f == "thumb" else ("proximal", "middle", "distal")
             for f in FINGERS}
@@ -62,22 +66,26 @@ class HandModel:
     surface_palmar (P,) bool, skin_albedo (3,).
     """
 
-    def __init__(self, skeleton: HandSkeleton, subject: str = "custom", spacing: float = 0.0025) -> None:
+    def __init__(self, skeleton: HandSkeleton, subject: str = "custom", spacing: float = 0.0025,
+                 girth: float = 1.0) -> None:
         self.skeleton = skeleton
         self.subject = subject
         self.spacing = spacing
+        self.girth = girth
         self.skin_albedo = SKIN_RGB.copy()
         self._build_capsules()
         self._build_surface()
 
     def _build_capsules(self) -> None:
         j = self.skeleton.rest_joints()
-        # Thickness follows overall hand size so that a small hand is not a fat one.
+        # Thickness follows overall hand size so that a small hand is not a fat one, times the
+        # subject's own girth.
         scale = float(self.skeleton.bone_lengths.sum() / DEFAULT_BONE_LENGTHS.sum())
+        thick = scale * self.girth
         rows: list[tuple[int, int, np.ndarray, np.ndarray, float, str]] = []
         for f in range(5):
             for k in range(3):
-                bone, r = 4 * f + k + 1, _FINGER_RADII[f, k] * scale
+                bone, r = 4 * f + k + 1, _FINGER_RADII[f, k] * thick
                 a, b = j[bone], j[bone + 1]
                 if k == 2:  # the tip keypoint is the end of the finger: the capsule stops there
                     b = b - r * (b - a) / np.linalg.norm(b - a)
@@ -93,11 +101,11 @@ class HandModel:
             (mid_r, mid_u, 0.0122),
         ]
         for a, b, r in palm:
-            rows.append((8, -1, a, b, r * scale, "palm"))
-        rows.append((0, -1, np.array([-0.005, 0.01, 0.0]) * scale, j[1], 0.0130 * scale, "palm"))
+            rows.append((8, -1, a, b, r * thick, "palm"))
+        rows.append((0, -1, np.array([-0.005, 0.01, 0.0]) * scale, j[1], 0.0130 * thick, "palm"))
         # The wrist is thicker than the palm on the dorsal side, not the palmar one.
         rows.append((8, -1, np.array([0.0, 0.0, 0.004]) * scale, np.array([0.0, -0.04, 0.004]) * scale,
-                     0.017 * scale, "wrist"))
+                     0.017 * thick, "wrist"))
         self.capsule_bone = np.array([r[0] for r in rows])
         self.capsule_finger = np.array([r[1] for r in rows])
         self.capsule_rest_a = np.array([r[2] for r in rows], dtype=float)
@@ -177,4 +185,4 @@ def make_hand(subject: str = "s01", spacing: float = 0.0025) -> HandModel:
     """The simulated hand of a built-in subject (SUBJECTS); ValueError names the choices otherwise."""
     if subject not in SUBJECTS:
         raise ValueError(f"unknown subject {subject!r}; choose one of {', '.join(SUBJECTS)}")
-    return HandModel(HandSkeleton(SUBJECTS[subject]), subject=subject, spacing=spacing)
+    return HandModel(HandSkeleton(SUBJECTS[subject]), subject=subject, spacing=spacing, girth=SUBJECT_GIRTH[subject])

@@ -65,6 +65,13 @@ def _truth(session, take, frame_ns):
     return keep, labels[:, [frames.index(tick[t]) for t in keep]].transpose(1, 0, 2, 3)
 
 
+def _read(out, session, take, *names):
+    """Arrays `names` of the take's group in DATASET.h5 `out`."""
+    with h5py.File(out) as f:
+        group = f[take_key(session / "S" / take)]
+        return [group[name][()] for name in names]
+
+
 def test_segment_grasp_take_into_dataset(grasp_session):
     session = grasp_session
     result, out = _segment(session, "grasp", "--object-take", str(session / "S" / "object"), "--every", "3",
@@ -98,9 +105,7 @@ def test_segment_object_take_is_all_object(grasp_session):
     session = grasp_session
     result, out = _segment(session, "object", "--object-take", str(session / "S" / "object"))
     assert result.exit_code == 0, result.output
-    with h5py.File(out) as f:
-        group = f[take_key(session / "S" / "object")]
-        hand, obj, frame_ns = group["masks/hand"][()], group["masks/object"][()], group["masks/frame_ns"][()]
+    hand, obj, frame_ns = _read(out, session, "object", "masks/hand", "masks/object", "masks/frame_ns")
     keep, truth = _truth(session, "object", frame_ns)
     assert keep and not hand.any()
     assert iou(obj[keep], truth == 2) >= 0.95, iou(obj[keep], truth == 2)
@@ -110,9 +115,7 @@ def test_segment_canonical_paint(canon_session):
     session = canon_session
     result, out = _segment(session, "canon", "--object-take", str(session / "S" / "object"))
     assert result.exit_code == 0, result.output
-    with h5py.File(out) as f:
-        group = f[take_key(session / "S" / "canon")]
-        paint, hand, frame_ns = group["paint/masks"][()], group["masks/hand"][()], group["masks/frame_ns"][()]
+    paint, hand, frame_ns = _read(out, session, "canon", "paint/masks", "masks/hand", "masks/frame_ns")
     middle = len(frame_ns) // 2   # the group the paint is segmented in
     _, truth = _truth(session, "canon", frame_ns[middle:middle + 1])
     assert paint.shape == truth[0].shape
@@ -146,8 +149,7 @@ def test_segment_bad_input(canon_session, tmp_path):
                                       "--every", "4", "-o", str(out)])
     assert result.exit_code == 0 and f"warning: camera {rig.ids[0]}: no frames in background take" in result.output
     assert "(1 warnings" in result.output
-    with h5py.File(out) as f:
-        hand = f[take_key(session / "S" / "canon")]["masks/hand"][()]
+    hand, = _read(out, session, "canon", "masks/hand")
     assert not hand[:, 0].any() and hand[:, 1:].any()
     # a canonical take without a paint colour: a warning, never silence
     result, _ = _segment(session, "canon", "--every", "4")

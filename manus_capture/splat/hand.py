@@ -4,7 +4,8 @@ The model lives in the canonical (rest) frame of dataset_tools.hand.skeleton:
 
 - canonical Gaussians, initialized around every bone: a normal distribution centred at the
   bone's midpoint, spread by the bone's length (`spread` times the length along the bone, at
-  most `radius` across it, as fingers are thinner than they are long);
+  most `radius` across it, as fingers are thinner than they are long); or, for contacts, surfels
+  on a given surface such as the capsule template's (`on_surface`, see trainer.ObjectConfig.surfels);
 - skinning weights on a canonical voxel grid (20 bones x G^3), initialized one-hot from the
   nearest bone of each voxel centre, smoothed by a few 3x3x3 box filters and kept only for
   bones that share a joint with the nearest one (fingers never blend); a Gaussian's

@@ -155,8 +155,9 @@ class ObjectConfig:
     @classmethod
     def surfels(cls, iterations: int = 400, **changes) -> "ObjectConfig":
         """`fast` with surfels for contacts: discs on the visual hull, at most SURFEL_MAX_SCALE_M
-        wide and SURFEL_THIN_M thin, drawn with the small blur SURFACE_EPS2D, without the isotropy
-        term (it keeps round Gaussians round and would fight the discs' shape)."""
+        wide and SURFEL_THIN_M thin, drawn with the small blur SURFACE_EPS2D, with the silhouette
+        term (SURFEL_MASK_WEIGHT) and without the isotropy term (it keeps round Gaussians round
+        and would fight the discs' shape)."""
         return cls.fast(iterations, **{**surfel_settings(), **changes})
 
 

@@ -46,6 +46,8 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
     images: {camera: image paths, in-memory images, or one video path}; or take: a take folder.
     For a moving board, frame i of every camera must be the same instant (takes are grouped by
     their host timestamps). tag_frames / board_frames: how many frames per camera are used.
+    workers: processes for the detection and threads for COLMAP (None: all cores; 1 makes COLMAP's
+    model the same on every run).
     Raises CalibrationError (and friends) naming the cameras when the input cannot be used;
     with allow_partial the cameras that cannot be calibrated are left out and the result says so.
     """
@@ -115,7 +117,7 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
 
             say("COLMAP: features, matching, mapping")
             try:
-                colmap_rig, info = _colmap(tag_src, tag_dets, tag_sizes, intr, layout)
+                colmap_rig, info = _colmap(tag_src, tag_dets, tag_sizes, intr, layout, workers)
             except ColmapError as exc:
                 if method == "colmap":
                     raise
@@ -248,15 +250,18 @@ def _check_sizes(sizes: dict[str, tuple[int, int]], intr) -> None:
                                f"were they calibrated at another resolution?")
 
 
-def _colmap(sources, tag_dets, sizes, intr, layout):
-    """COLMAP on one frame per camera (the one with most tag corners), aligned to the tags."""
+def _colmap(sources, tag_dets, sizes, intr, layout, workers: int | None):
+    """COLMAP on one frame per camera (the one with most tag corners), aligned to the tags; on
+    `workers` threads (all cores when None). One thread gives the same model on every run: COLMAP
+    is seeded, but its threads finish in any order (the alignment to the tags measured 1.9-2.8 mm
+    RMS over runs on all cores, and 5.6 mm once under load)."""
     from .colmap import align_to_tags, colmap_poses
 
     images, dets = {}, {}
     for cam, src in sources.items():
         frame, images[cam] = _best_frame(src, tag_dets.get(cam, {}))
         dets[cam] = tag_dets.get(cam, {}).get(frame)
-    poses, stats = colmap_poses(images, intr)
+    poses, stats = colmap_poses(images, intr, threads=workers or -1)
     rig, info = align_to_tags(poses, intr, sizes, {c: d for c, d in dets.items() if d is not None}, layout)
     return rig, {**stats, **info}
 

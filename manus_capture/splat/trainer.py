@@ -110,7 +110,7 @@ class LearningRates:
 # At the capture takes' resolutions a pixel is a few millimetres on the subject, and 3DGS's blur
 # draws a surface of splats about a pixel larger than it is: the fit then pulls the centres that
 # far inside. On the 12-camera 320x180 demo the hand's centres sat a median 2.9 mm inside its
-# surface at 0.3 and 1.7 mm at 0.05 (the object's: 3.0 and 1.6 mm with its old masks).
+# surface at 0.3 and 1.7 mm at 0.05 (the object's: 2.2 and 1.6 mm with its old masks).
 SURFACE_EPS2D = 0.05
 SURFEL_THIN_M = 3e-4
 SURFEL_MAX_SCALE_M = 2e-3

@@ -218,6 +218,7 @@ class Demo:
         from dataset_tools.calibration.formats import load_cameras
         from manus_capture.builder import ModelInputs
         from manus_capture.splat.checkpoint import save_checkpoint
+        from manus_capture.splat.trainer import SURFACE_EPS2D
 
         c = self.config
         self.rig = load_cameras(self.calib)
@@ -227,10 +228,11 @@ class Demo:
                                           hand_iterations=c.hand_iterations, scale=c.scale, seed=c.seed)
         self.hand, self.object, metrics = self.inputs.train(np.arange(len(self.rig)), evaluate=True)
         self.models.mkdir(parents=True, exist_ok=True)
+        blur = str(SURFACE_EPS2D)  # the splat blur the surfels were trained with (ModelInputs.train)
         save_checkpoint(self.models / "hand.safetensors", self.hand.gaussians, kind="hand",
-                        extra=self.hand.extra_tensors(), metadata={"source": str(self.take["hand"])})
+                        extra=self.hand.extra_tensors(), metadata={"source": str(self.take["hand"]), "eps2d": blur})
         save_checkpoint(self.models / "object.safetensors", self.object, kind="object",
-                        metadata={"source": str(self.take["object"])})
+                        metadata={"source": str(self.take["object"]), "eps2d": blur})
         return metrics
 
     def contacts(self) -> dict:

@@ -9,6 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from manus_capture.cli import cli
+from manus_capture.splat.checkpoint import load_checkpoint
 
 ARGS = ["--cameras", "12", "--resolution", "320x180", "--fps", "20", "--views", "3,6,all", "--iterations", "300"]
 
@@ -90,6 +91,9 @@ def test_commands_on_the_demo_session(demo, tmp_path):
                                  "session/01-hand", "--iterations", "60", "--poses", "6", "-o", str(hand)])
     assert result.exit_code == 0, result.output
     assert "held-out poses" in result.output
+    # surfels on the template by default, and the demo's too: drawn again with the blur they learnt with
+    assert load_checkpoint(hand)[2]["eps2d"] == "0.05"
+    assert load_checkpoint(out / "models" / "hand.safetensors")[2]["eps2d"] == "0.05"
     result = runner.invoke(cli, ["contacts", str(dataset), "--take", "session/03-grasp1", "--hand",
                                  str(out / "models" / "hand.safetensors"), "--object",
                                  str(out / "models" / "object.safetensors")])

@@ -181,6 +181,7 @@ def test_reconstruct_hand_command(small_hand_take, tmp_path):
     assert "from 5 poses" in result.output and "1 held-out poses: held-out PSNR" in result.output
     gaussians, extra, meta = load_checkpoint(out)
     assert meta["kind"] == "hand" and meta["frames"] == "0,1,2,4,5,3" and len(gaussians) == 200
+    assert meta["eps2d"] == "0.3"   # --init bones: round Gaussians, 3DGS's blur
     assert np.allclose(extra["bone_lengths"].numpy(), hand_frames_from_truth(hand_take).bone_lengths)
 
     # Bad input: one line and exit code 2 (or click's usage error), never a traceback.
@@ -225,6 +226,8 @@ def test_reconstruct_object_command_on_a_take(tmp_path):
     assert f"from {len(seen) - 1} views" in result.output and "PSNR on the mask" in result.output
     gaussians, _, meta = load_checkpoint(out)
     assert meta["kind"] == "object" and meta["cameras"] == ",".join(seen) and len(gaussians) == 200
+    # surfels (masks given), with the blur `reconstruct render` draws them with again
+    assert meta["eps2d"] == "0.05" and float(gaussians.scales[:, 2].max()) <= 3e-4 + 1e-9
     wrong = runner.invoke(cli, ["reconstruct", "object", "--cameras", str(tmp_path / "cameras.json"), "--images",
                                 str(tmp_path), "--masks", "truth", "-o", str(tmp_path / "x.safetensors")])
     assert wrong.exit_code == 2 and "--masks truth needs --take" in wrong.output

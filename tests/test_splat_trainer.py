@@ -155,6 +155,7 @@ def test_reconstruct_command_trains_and_renders(tmp_path, known_scene):
     missing = runner.invoke(cli, args + ["--force"])
     assert missing.exit_code == 2 and "c03" in missing.output
 
+    assert load_checkpoint(tmp_path / "object.safetensors")[2]["eps2d"] == "0.3"   # --no-surfels
     out = runner.invoke(cli, ["reconstruct", "render", str(tmp_path / "object.safetensors"), "--cameras",
                               str(tmp_path / "cameras.json"), "-o", str(tmp_path / "renders")])
     assert out.exit_code == 0, out.output

@@ -187,7 +187,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
     save_checkpoint(output, result.gaussians, kind="object",
                     metadata={"calibration": str(cameras_path), "source": str(take or images_dir),
                               "frame": str(frame), "scale": str(scale), "background": background,
-                              "cameras": ",".join(views.ids), "test_cameras": ",".join(held_out)})
+                              "cameras": ",".join(views.ids), "test_cameras": ",".join(held_out),
+                              "eps2d": str(cfg.eps2d)})
     summary = f"{output}: {len(result.gaussians)} Gaussians from {len(train_idx)} views, {elapsed:.0f} s"
     if test_idx:
         summary += "; " + _scores_text(evaluate(result.gaussians, views.subset(test_idx), bg,
@@ -271,7 +272,7 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     save_checkpoint(output, model.gaussians, kind="hand", extra=model.extra_tensors(),
                     metadata={"calibration": str(cameras_path), "source": str(take), "angles": hand.source,
                               "frames": ",".join(map(str, frames)), "test_frames": ",".join(map(str, test)),
-                              "scale": str(scale), "background": background})
+                              "scale": str(scale), "background": background, "eps2d": str(cfg.eps2d)})
     n_views = sum(len(views[i]) for i in train_rows)
     n_poses = sum(1 for i in train_rows if len(views[i]))
     summary = f"{output}: {len(model)} Gaussians from {n_poses} poses ({n_views} views), {elapsed:.0f} s"
@@ -304,10 +305,12 @@ def render_command(checkpoint: Path, cameras_path: Path, scale: float, backgroun
     from dataset_tools.fileio import write_atomic
     from manus_capture.splat.checkpoint import load_checkpoint
     from manus_capture.splat.hand import HandGaussians
+    from manus_capture.splat.rasterize import EPS2D
     from manus_capture.splat.trainer import render, world_to_camera
 
     rig = load_cameras(cameras_path)
     gaussians, extra, meta = load_checkpoint(checkpoint)
+    eps2d = float(meta.get("eps2d", EPS2D))  # the splat blur the model was trained with
     hand = HandGaussians.from_checkpoint(gaussians, extra) if meta.get("kind") == "hand" else None
     pose = torch.zeros(26)
     if angles is not None:
@@ -328,9 +331,9 @@ def render_command(checkpoint: Path, cameras_path: Path, scale: float, backgroun
         V = world_to_camera(rig.R[i:i + 1], rig.t[i:i + 1])[0]
         with torch.no_grad():
             if hand is None:
-                rgb, _ = render(gaussians, V[None], K[None], w, h, bg)
+                rgb, _ = render(gaussians, V[None], K[None], w, h, bg, eps2d=eps2d)
             else:
-                rgb, _ = hand.render(pose, V[None], K[None], w, h, bg)
+                rgb, _ = hand.render(pose, V[None], K[None], w, h, bg, eps2d=eps2d)
         image = (rgb[0].clamp(0, 1).numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
         write_atomic(path, cv2.imencode(".png", image)[1].tobytes())
     click.echo(f"{output}: {len(rig)} views of {checkpoint.name} ({meta.get('kind')}, {len(gaussians)} Gaussians), "

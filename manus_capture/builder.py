@@ -14,8 +14,9 @@ import numpy as np
 
 HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PSNR
 # Contact is measured between Gaussian centres, so both models' centres should lie on their
-# surfaces: both are surfels (Gaussians.surfels), the hand's starting on the capsule template and
-# moving with 10x faster centre steps than 3DGS's, so that hundreds of CPU steps fit its shape.
+# surfaces: both are surfels (Gaussians.surfels), the hand's starting on the capsule template. Its
+# centres move with 2.5x 3DGS's steps: 10x made them wander 2-3 mm (on a take with true poses,
+# masks and cameras) and settle 2.9 mm inside the hand's surface.
 HAND_MEANS_LR = 4e-4
 
 
@@ -31,7 +32,7 @@ def surface_hand(bone_lengths, sh_degree: int = 1):
 
 
 def surface_hand_config(iterations: int, **changes):
-    """HandConfig.surfels with the faster centre steps of HAND_MEANS_LR."""
+    """HandConfig.surfels with the centre steps of HAND_MEANS_LR."""
     from manus_capture.splat.hand import HandConfig
     from manus_capture.splat.trainer import LearningRates
 

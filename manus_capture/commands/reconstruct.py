@@ -142,9 +142,8 @@ def _common_options(f):
 @_common_options
 def object_command(take: Path | None, frame: int | None, images_dir: Path | None, masks_arg: str | None,
                    test_cameras: str, iterations: int, points: int, surfels: bool, cameras_path: Path,
-                   only_cameras: str,
-                   scale: float, crop_margin: int, sh_degree: int, background: str, lpips_weights: Path | None,
-                   lpips_net: str, seed: int, output: Path, force: bool) -> None:
+                   only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
+                   lpips_weights: Path | None, lpips_net: str, seed: int, output: Path, force: bool) -> None:
     """Fit static Gaussians to the calibrated views of an object; print held-out PSNR/SSIM."""
     import cv2
 
@@ -222,9 +221,9 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
 @_common_options
 def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None, truth: bool, frames_arg: str,
                  poses: int, test_frames: str, masks_arg: str | None, iterations: int, init: str, per_bone: int,
-                 cameras_path: Path,
-                 only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
-                 lpips_weights: Path | None, lpips_net: str, seed: int, output: Path, force: bool) -> None:
+                 cameras_path: Path, only_cameras: str, scale: float, crop_margin: int, sh_degree: int,
+                 background: str, lpips_weights: Path | None, lpips_net: str, seed: int, output: Path,
+                 force: bool) -> None:
     """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
     from manus_capture.builder import surface_hand, surface_hand_config
     from manus_capture.splat.checkpoint import save_checkpoint

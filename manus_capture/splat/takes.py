@@ -77,15 +77,18 @@ def truth_labels(take_path: str | os.PathLike, cameras: Sequence[str], seqs: np.
         labelled = {int(t): j for j, t in enumerate(f["labels/frames"][()])}
         image = f["labels/image"]
         out = np.zeros((seqs.shape[0], len(cameras)) + image.shape[2:], np.uint8)
+        missing = sorted({int(t) for t in seqs[seqs >= 0]} - labelled.keys())
+        if missing:
+            raise TakeInputError(f"{path}: no labels for tick {missing[0]} (labelled ticks: "
+                                 f"{', '.join(map(str, sorted(labelled))) or 'none'})")
         for c, cam in enumerate(cameras):
             if cam not in gt_ids:
                 raise TakeInputError(f"{path}: no camera {cam!r} in the ground truth")
-            for t in np.flatnonzero(seqs[:, c] >= 0):
-                j = labelled.get(int(seqs[t, c]))
-                if j is None:
-                    raise TakeInputError(f"{path}: no labels for tick {int(seqs[t, c])} (labelled ticks: "
-                                         f"{', '.join(map(str, sorted(labelled))) or 'none'})")
-                out[t, c] = image[gt_ids.index(cam), j]
+            rows = np.flatnonzero(seqs[:, c] >= 0)
+            wanted = np.array([labelled[int(t)] for t in seqs[rows, c]], np.int64)
+            # one read per camera (h5py wants increasing, distinct indices)
+            unique, back = np.unique(wanted, return_inverse=True)
+            out[rows, c] = image[gt_ids.index(cam), unique.tolist()][back]
     return out
 
 

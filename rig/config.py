@@ -72,6 +72,18 @@ class StorageConfig:
     root: str = "sessions"
     min_free_gb: float = 1.0
     jpeg_quality: int = 90            # for backends that hand out raw frames
+    # "444" keeps colour at full resolution: the paint key and the hand/object colour models decide
+    # the pixels along small painted spots on colour (paint and skin are close in brightness), and
+    # 4:2:0 halves colour resolution for about 25 % smaller frames
+    jpeg_chroma: Literal["444", "420"] = "444"
+
+    def jpeg_params(self) -> list[int]:
+        """cv2.imencode parameters of the stored JPEG frames."""
+        import cv2
+
+        sampling = {"444": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444, "420": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420}
+        return [cv2.IMWRITE_JPEG_QUALITY, int(self.jpeg_quality),
+                cv2.IMWRITE_JPEG_SAMPLING_FACTOR, sampling[self.jpeg_chroma]]
 
 
 @dataclass(frozen=True)

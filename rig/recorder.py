@@ -47,7 +47,9 @@ FRAME_COLUMNS = "cam,seq,t_device_ns,t_host_ns,bytes,flags"
 FLAG_HOST_JPEG = 1            # frames.csv flags bit: the host encoded a raw frame to JPEG
 BALLAST_BYTES = 32 * 2**20    # reserved at the start, released to finish the take on a full disk
 JPEG_BYTES_BASE = 2000        # estimate of a JPEG frame: header + entropy-coded pixels
-JPEG_BYTES_PER_PIXEL = 0.25   # q90 at 720p measures ~0.18 B/px; the estimate errs on the safe side
+# q90 of the simulated cube at 720p measures 0.22 B/px with colour at full resolution (4:2:0: 0.17);
+# the estimate errs on the safe side
+JPEG_BYTES_PER_PIXEL = 0.25
 REAL_LEAD_NS = 50_000_000     # real rigs: tick 0 comes this long after the cameras started
 READ_TIMEOUT_S = 0.2          # how often a reader looks at the stop flag
 STALL_S = 2.0                 # a camera that hands out nothing for this long has stopped
@@ -367,8 +369,9 @@ _BYTES_PER_PIXEL = {"mono8": 1, **dict.fromkeys(_HIGH_BIT, 2), **dict.fromkeys(_
                     "bgr8": 3, "rgb8": 3, "uyvy": 2, "yuyv": 2}
 
 
-def frame_jpeg(frame: Frame, quality: int) -> tuple[bytes, int]:
-    """(JPEG bytes, frames.csv flags): JPEG frames as they came; raw pixels encoded at `quality`."""
+def frame_jpeg(frame: Frame, params: list[int]) -> tuple[bytes, int]:
+    """(JPEG bytes, frames.csv flags): JPEG frames as they came; raw pixels encoded with the
+    cv2.imencode `params` (StorageConfig.jpeg_params)."""
     if frame.encoding == "jpeg":
         return frame.data, 0
     import cv2
@@ -392,7 +395,7 @@ def frame_jpeg(frame: Frame, quality: int) -> tuple[bytes, int]:
     else:
         code = cv2.COLOR_YUV2BGR_UYVY if enc == "uyvy" else cv2.COLOR_YUV2BGR_YUY2
         image = cv2.cvtColor(buf[:w * h * 2].reshape(h, w, 2), code)
-    ok, out = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    ok, out = cv2.imencode(".jpg", image, params)
     if not ok:
         raise ValueError(f"JPEG encoding of a {w}x{h} {enc} frame failed")
     return out.tobytes(), FLAG_HOST_JPEG
@@ -562,7 +565,7 @@ class _Stream:
         report = self.report
         datas, rows = [], []
         for frame in frames:
-            data, flags = frame_jpeg(frame, self.rec.jpeg_quality)
+            data, flags = frame_jpeg(frame, self.rec.jpeg_params)
             datas.append(data)
             rows.append(f"{self.id},{frame.seq},{frame.t_device_ns},{frame.t_host_ns},{len(data)},{flags}\n")
         self.mkv.write(datas)
@@ -609,7 +612,8 @@ class Recorder:
         self.level, self.flash_ms, self.flash_every_s = level, flash_ms, flash_every_s
         self.flash_level = flash_level
         self.read_timeout_s, self.stall_s, self.progress, self.fsync = read_timeout_s, stall_s, progress, fsync
-        self.jpeg_quality = rig.storage.jpeg_quality
+        self.storage = rig.storage
+        self.jpeg_params = rig.storage.jpeg_params()
         self.backend_note = backend_note
         self.on_stop = on_stop
         self.t0_ns = t0_ns
@@ -838,7 +842,8 @@ class Recorder:
             "status": status, "reason": reason, "created": self.created,
             "frames": sum(s.report.frames for s in self.streams),
             "lost_cameras": [s.id for s in self.streams if s.report.status != "ok"],
-            "events": list(self.events), "storage": {"jpeg_quality": self.jpeg_quality},
+            "events": list(self.events),
+            "storage": {"jpeg_quality": self.storage.jpeg_quality, "jpeg_chroma": self.storage.jpeg_chroma},
         }
         if self.backend_note:
             meta["backend_note"] = self.backend_note

@@ -343,6 +343,26 @@ def test_raw_frames_are_jpeg_encoded(tmp_path):
     assert np.abs(colour[inner] - bgr[inner][..., ::-1]).mean() > 40   # red and blue in their places
 
 
+@pytest.mark.parametrize("chroma", ["444", "420"])
+def test_stored_jpeg_chroma(tmp_path, chroma):
+    rig = make_rig("cube53", cameras=1, resolution=(64, 48), backend="aravis", seed=1)
+    rig = dataclasses.replace(rig, storage=dataclasses.replace(rig.storage, jpeg_chroma=chroma))
+    stripes = np.zeros((48, 64, 3), np.uint8)   # one-pixel columns: red, green, red, ...
+    stripes[:, 0::2, 2] = 220
+    stripes[:, 1::2, 1] = 200
+    clock = VirtualClock(time_scale=0)
+    t0 = clock.now_ns() + 1_000_000
+    cid = rig.cameras[0].id
+    result = Recorder(rig, tmp_path / "t", "calibration", 0.03, {cid: RawCamera(cid, stripes, "bgr8", clock, t0)},
+                      clock, t0_ns=t0, progress=False).run()
+    assert result.status == "complete"
+    take = Take(tmp_path / "t")
+    assert take.meta["storage"] == {"jpeg_quality": 90, "jpeg_chroma": chroma}
+    error = np.abs(take.read_frame(cid, 1).astype(int) - stripes).mean()
+    # full-resolution colour keeps each column's hue; 4:2:0 averages neighbouring columns to yellow
+    assert error < 15 if chroma == "444" else error > 40, error
+
+
 def test_mkv_is_readable_when_killed_and_rolls_back_failed_writes(tmp_path, monkeypatch):
     frames = []
     for k in range(40):

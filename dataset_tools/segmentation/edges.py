@@ -17,7 +17,7 @@ import numpy as np
 
 # How far (px) from a class's pure pixels a mixed pixel may take that class's colour.
 REACH = 3.0
-# Colours are compared in YCrCb with the chroma down-weighted: JPEG (4:2:0) keeps chroma at half
+# Colours are compared in YCrCb with the chroma down-weighted: frames stored 4:2:0 keep chroma at half
 # resolution, so an edge pixel's chroma is smeared over its neighbours and only its luma is sharp.
 WEIGHTS = np.array([1.0, 0.4, 0.4], np.float32)
 # A surface turns darker towards its silhouette (it faces away from the light there), so the

@@ -47,7 +47,9 @@ def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, point
     hit = np.zeros(len(points), np.int32)
     for c in np.flatnonzero(use):
         h, w = masks[c].shape
-        x, y = np.rint(uv[c, :, 0]).astype(np.int64), np.rint(uv[c, :, 1]).astype(np.int64)
+        # points in the camera's plane project to no pixel, or one far beyond int64
+        pix = np.rint(np.clip(np.nan_to_num(uv[c], nan=-1.0), -1.0, 1e9)).astype(np.int64)
+        x, y = pix[:, 0], pix[:, 1]
         inside = (depth[c] > 1e-3) & (x >= 0) & (y >= 0) & (x < w) & (y < h)
         radius = rig.K[c, 0, 0] * half * np.sqrt(3) / np.maximum(depth[c], 1e-3) + 1.0
         d = np.full(len(points), np.inf, np.float32)

@@ -137,7 +137,8 @@ class SimCamera:
         self._trigger_ready = threading.Condition()
         sim = cube.config.sim
         self._noise_sigma = sim.noise_sigma
-        self._quality = cube.config.storage.jpeg_quality
+        # the cube's cameras hand out JPEG as the recorder would store them
+        self._jpeg_params = cube.config.storage.jpeg_params()
         self._seed = sim.seed
 
     def open(self) -> None:
@@ -217,8 +218,7 @@ class SimCamera:
     def _encode(self, image: np.ndarray, k: int) -> bytes:
         rng = np.random.default_rng([self._seed, self.index, k, 99])
         noisy = image * 255.0 + rng.standard_normal(image.shape, dtype=np.float32) * self._noise_sigma
-        ok, buf = cv2.imencode(".jpg", np.clip(noisy, 0, 255).astype(np.uint8),
-                               [cv2.IMWRITE_JPEG_QUALITY, self._quality])
+        ok, buf = cv2.imencode(".jpg", np.clip(noisy, 0, 255).astype(np.uint8), self._jpeg_params)
         if not ok:
             raise CameraError(f"camera {self.config.id}: JPEG encoding failed")
         return buf.tobytes()

@@ -3,7 +3,8 @@
 Per camera, everything static (the walls with their tags, the table) is rendered once with
 trilinear mip-mapped texture sampling and cached. Per frame only the rays that can meet the hand or
 the object (their projected bounding box) are cast, `supersample`^2 rays per pixel, and averaged:
-edges are anti-aliased and the per-pixel labels follow the majority of a pixel's rays.
+edges are anti-aliased and the per-pixel labels follow the majority of a pixel's rays (a tie goes
+to the ray through the pixel's centre).
 Lens distortion is exact: rays are cast through the undistorted position of each distorted pixel.
 """
 
@@ -221,22 +222,52 @@ class Renderer:
         s = self.supersample
         bw, bh = x1 - x0 + 1, y1 - y0 + 1
         gx, gy = self._subpixels(x0, y0, bw, bh)
-        dirs = self.rays(cam, gx.ravel(), gy.ravel())
-        origin = self.rig.centers[cam]
-        n = len(dirs)
         # the static depth under each ray, from its own pixel: the table edge is sharp enough there
         py = (np.arange(bh * s) // s)[:, None].repeat(bw * s, axis=1).ravel() + y0
         px = (np.arange(bw * s) // s)[None, :].repeat(bh * s, axis=0).ravel() + x0
-        depth = bg_depth[py, px].astype(np.float64)
-        colour = bg_colour[py, px].copy()
+        near_hand = near_obj = None
+        if hand is not None and hand_angles is not None:
+            a, b, r, _, _ = self._hand_geometry(hand, hand_angles)
+            near_hand = self._near(cam, (a + b) / 2, np.linalg.norm(b - a, axis=1) / 2 + r, box)
+        if obj is not None and object_pose is not None:
+            near_obj = self._near(cam, np.asarray(object_pose[1], np.float64), obj.radius, box)[0]
+        colour, label = self._trace(cam, self.rays(cam, gx.ravel(), gy.ravel()), bg_colour[py, px], bg_depth[py, px],
+                                    hand, hand_angles, paint, obj, object_pose, near_hand, near_obj)
+        # average the s x s rays of each pixel
+        image[y0:y1 + 1, x0:x1 + 1] = colour.reshape(bh, s, bw, s, 3).mean(axis=(1, 3))
+        if label_img is None:
+            return
+        counts = np.zeros((bh * bw, 5), np.int32)
+        pix = (np.arange(bh * s) // s)[:, None] * bw + (np.arange(bw * s) // s)[None, :]
+        np.add.at(counts, (pix.ravel(), label), 2)
+        # the majority of the pixel's rays; a tie (an even s, an edge through the middle) goes to the
+        # ray through the pixel's centre, which for a straight edge is on the side covering more of it
+        top = np.sort(counts, axis=1)
+        tie = np.flatnonzero(top[:, -1] == top[:, -2])
+        if len(tie):
+            ty, tx = tie // bw + y0, tie % bw + x0
+            _, centre = self._trace(cam, self.rays(cam, tx, ty), bg_colour[ty, tx], bg_depth[ty, tx],
+                                    hand, hand_angles, paint, obj, object_pose)
+            counts[tie, centre] += 1
+        label_img[y0:y1 + 1, x0:x1 + 1] = np.argmax(counts, axis=1).reshape(bh, bw).astype(np.uint8)
+
+    def _trace(self, cam, dirs, colour, depth, hand, hand_angles, paint, obj, object_pose,
+               near_hand=None, near_obj=None) -> tuple[np.ndarray, np.ndarray]:
+        """(N,3) colour and (N,) label of rays `dirs` (N,3) of a camera over the static scene's
+        `colour` and `depth` under them; `near_hand` (capsules,N) and `near_obj` (N,) say which rays
+        may meet each capsule and the object (all of them when None)."""
+        origin = self.rig.centers[cam]
+        n = len(dirs)
+        depth = depth.astype(np.float64)
+        colour = colour.copy()
         label = np.full(n, LABEL_WALLS, np.uint8)
         if hand is not None and hand_angles is not None:
             a, b, r, surface, tree = self._hand_geometry(hand, hand_angles)
             t_h = np.full(n, np.inf)
             n_h = np.zeros((n, 3))
-            # Only rays inside a capsule's projected bounding square can meet it. Each finger (and
-            # the palm) is cast on its own rays: far fewer ray-capsule pairs than all against all.
-            near = self._near(cam, (a + b) / 2, np.linalg.norm(b - a, axis=1) / 2 + r, box)  # (M,N)
+            near = np.ones((len(a), n), bool) if near_hand is None else near_hand
+            # Each finger (and the palm) is cast on its own rays, those that can meet it: far fewer
+            # ray-capsule pairs than all against all.
             for group in np.unique(hand.capsule_finger):
                 caps = np.flatnonzero(hand.capsule_finger == group)
                 sel = np.flatnonzero(near[caps].any(axis=0))
@@ -258,22 +289,14 @@ class Renderer:
                 label[hit] = np.where(painted, LABEL_PAINT, LABEL_HAND)
                 depth = np.where(hit, t_h, depth)
         if obj is not None and object_pose is not None:
-            sel = np.flatnonzero(self._near(cam, np.asarray(object_pose[1], np.float64), obj.radius, box)[0])
+            sel = np.arange(n) if near_obj is None else np.flatnonzero(near_obj)
             t_o, n_o, albedo_o = obj.intersect(np.broadcast_to(origin, (len(sel), 3)), dirs[sel], object_pose)
             hit = t_o < depth[sel]
             if hit.any():
                 rays = sel[hit]
                 colour[rays] = shade(np.asarray(albedo_o, np.float32)[hit][:, ::-1], n_o[hit], dirs[rays])
                 label[rays] = LABEL_OBJECT
-        # average the s x s rays of each pixel
-        block = colour.reshape(bh, s, bw, s, 3).mean(axis=(1, 3))
-        image[y0:y1 + 1, x0:x1 + 1] = block
-        if label_img is not None:
-            counts = np.zeros((bh * bw, 5), np.int32)
-            pix = (np.arange(bh * s) // s)[:, None] * bw + (np.arange(bw * s) // s)[None, :]
-            np.add.at(counts, (pix.ravel(), label), 1)
-            # majority of the pixel's rays; a tie goes to the lower label (hand before object before walls)
-            label_img[y0:y1 + 1, x0:x1 + 1] = np.argmax(counts, axis=1).reshape(bh, bw).astype(np.uint8)
+        return colour, label
 
     def _near(self, cam: int, centres: np.ndarray, radii, box: tuple[int, int, int, int]) -> np.ndarray:
         """(M,N) which rays of a box (laid out as in _subpixels) may meet each of M spheres: those

@@ -46,7 +46,7 @@ def grasp_session(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def canon_session(tmp_path_factory):
-    return _record(tmp_path_factory.mktemp("canon"), "canon", "canonical", 0.02, [0, 1, 2])
+    return _record(tmp_path_factory.mktemp("canon"), "canon", "canonical", 0.02, [0, 1, 2, 3])
 
 
 def _segment(session, take, *extra):
@@ -121,9 +121,9 @@ def test_segment_canonical_paint(canon_session):
     assert paint.shape == truth[0].shape
     hand_iou = iou(hand[middle], (truth[0] == 1) | (truth[0] == 3))
     paint_iou = iou(paint, truth[0] == 3)
-    # 320x180, spots of 50-220 px: measured hand 0.95, paint 0.66 (0.48-0.75 per view); see
-    # test_segmentation.py for the issue's targets at 640x360
-    assert hand_iou >= 0.92 and paint_iou >= 0.55, (hand_iou, paint_iou)
+    # 320x180, spots of 50-220 px: measured hand 0.96, paint 0.84 pooled over the views; see
+    # test_segmentation.py for the issue's targets at 1280x720
+    assert hand_iou >= 0.92 and paint_iou >= 0.75, (hand_iou, paint_iou)
 
 
 def test_segment_bad_input(canon_session, tmp_path):
@@ -157,3 +157,84 @@ def test_segment_bad_input(canon_session, tmp_path):
     # a paint colour that is not on the hand
     result, _ = _segment(session, "canon", "--swatch", "255,40,40", "--every", "4")
     assert result.exit_code == 0 and "no paint colour found" in result.output, result.output
+
+
+def _groups(session, take):
+    from dataset_tools.annotate import sync_groups
+    from dataset_tools.take import Take
+
+    (frame_ns, frame_index), _ = sync_groups(Take(session / "S" / take))
+    return frame_ns, frame_index
+
+
+def test_segment_masks_made_by_another_tool(canon_session, tmp_path):
+    session = canon_session
+    frame_ns, frame_index = _groups(session, "canon")
+    keep, truth = _truth(session, "canon", frame_ns)
+    assert keep == list(range(len(frame_ns)))
+    cams = CameraRig.load(session / "cameras.json").ids
+    # a camera without a frame in a group (a drop) has no mask there
+    hand_truth = ((truth == 1) | (truth == 3)) & (frame_index >= 0)[..., None, None]
+    for t, c in zip(*np.nonzero(frame_index >= 0)):
+        (tmp_path / "masks" / "hand" / cams[c]).mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(tmp_path / "masks" / "hand" / cams[c] / f"{frame_index[t, c]:06d}.png"),
+                    hand_truth[t, c].astype(np.uint8) * 255)
+    result, out = _segment(session, "canon", "--masks", str(tmp_path / "masks"),
+                           "--object-take", str(session / "S" / "object"))
+    assert result.exit_code == 0, result.output
+    hand, obj, paint = _read(out, session, "canon", "masks/hand", "masks/object", "paint/masks")
+    assert np.array_equal(hand, hand_truth) and not obj.any()
+    middle = len(frame_ns) // 2
+    # inside the true hand masks: measured 0.83 (0.84 inside segmented ones: test_segment_canonical_paint)
+    assert iou(paint, truth[middle] == 3) >= 0.75, iou(paint, truth[middle] == 3)
+    # the masks stand in for the background: a swatch gives the paint colour
+    args = ["segment", str(session / "S" / "canon"), "--calib", str(session / "cameras.json"), "--masks",
+            str(tmp_path / "masks"), "--swatch", "51,199,31", "-o", str(tmp_path / "swatch.h5")]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0 and "paint in" in result.output, result.output
+    # a mask missing: one line naming the file, exit code 2
+    missing = tmp_path / "masks" / "hand" / cams[1] / f"{frame_index[0, 1]:06d}.png"
+    missing.unlink()
+    result = CliRunner().invoke(cli, [*args[:-1], str(tmp_path / "again.h5")])
+    assert result.exit_code == 2 and f"{missing}: missing or not an image" in result.output, result.output
+    # masks without a background: the object take's paint colour cannot be found
+    result = CliRunner().invoke(cli, args[:6] + ["--object-take", str(session / "S" / "object"), "-o",
+                                                 str(tmp_path / "object.h5")])
+    assert result.exit_code == 2 and "--swatch for the paint colour" in result.output, result.output
+    # neither a background nor masks
+    result = CliRunner().invoke(cli, args[:4] + ["--swatch", "51,199,31", "-o", str(tmp_path / "none.h5")])
+    assert result.exit_code == 2 and "no background take" in result.output, result.output
+
+
+def test_segment_paint_on_the_hand_surface(canon_session, tmp_path):
+    """With annotate's poses in DATASET.h5, the paint masks are voted onto the capsule template's
+    surface points; the votes agree with the simulator's true paint on the hand."""
+    from scipy.spatial import cKDTree
+
+    from dataset_tools.dataset import add_arrays
+
+    session = canon_session
+    frame_ns, _ = _groups(session, "canon")
+    with h5py.File(session / "S" / "canon" / "ground_truth.h5") as gt:
+        tick = np.rint((frame_ns - gt.attrs["t0_ns"]) * FPS / 1e9).astype(int)
+        angles, bones = gt["hand/joint_angles"][()][tick], gt["hand/bone_lengths"][()]
+        true_points, true_paint = gt["contact/points_rest"][()], gt["contact/accumulated"][()] > 0.5
+    out = tmp_path / "D.h5"
+    # what annotate stores, with the true poses
+    add_arrays(out, take_key(session / "S" / "canon"), {"frame_ns": frame_ns, "joint_angles": angles,
+                                                         "bone_lengths": bones})
+    args = ["segment", str(session / "S" / "canon"), "--calib", str(session / "cameras.json"), "--background",
+            str(session / "S" / "empty"), "--object-take", str(session / "S" / "object"), "-o", str(out)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0 and "seen surface points" in result.output, result.output
+    value, voters, points = _read(out, session, "canon", "paint/contact", "paint/voters", "paint/points_rest")
+    seen = voters > 0
+    assert seen.mean() > 0.5 and np.isnan(value[~seen]).all()
+    # the template's surface is within a few millimetres of the simulated hand's: each of its
+    # points takes the truth of the nearest simulated surface point
+    dist, nearest = cKDTree(true_points).query(points)
+    scored = seen & (dist < 0.004)
+    voted, true = value[scored] > 0.5, true_paint[nearest[scored]]
+    score = (voted & true).sum() / max((voted | true).sum(), 1)
+    # 5 cameras at 320x180: measured IoU 0.80 over 3450 points (61 % of the template seen)
+    assert score >= 0.7, score

@@ -37,19 +37,23 @@ def default_bounds(rig: CameraRig, margin: float = 0.1) -> np.ndarray:
     return np.stack([-half, half])
 
 
+def pixels(rig: CameraRig, points: np.ndarray) -> np.ndarray:
+    """The pixel (C,N,2) int64 each point (N,3) falls on in each view; -1 where it projects to no
+    pixel (a point in the camera's plane gives NaN or a value beyond int64)."""
+    return np.rint(np.clip(np.nan_to_num(rig.project(points), nan=-1.0), -1.0, 1e9)).astype(np.int64)
+
+
 def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, points: np.ndarray,
            half: float) -> tuple[np.ndarray, np.ndarray]:
     """(seen, hit) counts per point over the views in `use`: seen when it projects into the image
     in front of the camera, hit when a mask pixel lies within the voxel's projected radius."""
-    uv = rig.project(points)
+    uv = pixels(rig, points)
     depth = np.einsum("cij,nj->cni", rig.R, points)[..., 2] + rig.t[:, None, 2]
     seen = np.zeros(len(points), np.int32)
     hit = np.zeros(len(points), np.int32)
     for c in np.flatnonzero(use):
         h, w = masks[c].shape
-        # points in the camera's plane project to no pixel, or one far beyond int64
-        pix = np.rint(np.clip(np.nan_to_num(uv[c], nan=-1.0), -1.0, 1e9)).astype(np.int64)
-        x, y = pix[:, 0], pix[:, 1]
+        x, y = uv[c, :, 0], uv[c, :, 1]
         inside = (depth[c] > 1e-3) & (x >= 0) & (y >= 0) & (x < w) & (y < h)
         radius = rig.K[c, 0, 0] * half * np.sqrt(3) / np.maximum(depth[c], 1e-3) + 1.0
         d = np.full(len(points), np.inf, np.float32)
@@ -99,7 +103,7 @@ def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, in
         return out
     corners = np.stack(np.meshgrid(*[[-0.5, 0.0, 0.5]] * 3, indexing="ij"), -1).reshape(-1, 3) * occupancy.voxel
     points = (occupancy.centres[:, None] + corners[None]).reshape(-1, 3)
-    uv = np.rint(rig.project(points)).astype(np.int64)
+    uv = pixels(rig, points)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     for c in range(len(rig.ids)):
         x, y = uv[c, :, 0], uv[c, :, 1]

@@ -11,6 +11,7 @@ from ..cameras import CameraRig
 from .background import SegmentationError, remove_small
 from .colour import PaintKey, chromaticity
 from .edges import refine_edges
+from .multiview import pixels
 
 
 def paint_masks(images: np.ndarray, hand_masks: np.ndarray, key: PaintKey, min_area: int = 3,
@@ -61,7 +62,7 @@ def contact_votes(rig: CameraRig, points: np.ndarray, paint: np.ndarray, hand: n
     n_cam, h, w = paint.shape
     if n_cam != len(rig.ids):
         raise SegmentationError(f"contact votes: {n_cam} paint masks for {len(rig.ids)} cameras")
-    uv = np.rint(rig.project(points)).astype(np.int64)
+    uv = pixels(rig, points)
     cam_points = np.einsum("cij,nj->cni", rig.R, points) + rig.t[:, None, :]
     yes = np.zeros(len(points), np.int32)
     voters = np.zeros(len(points), np.int32)

@@ -14,6 +14,7 @@ from ..take import Take
 from .background import BackgroundModel, SegmentationError
 from .colour import PaintKey
 from .paint import paint_masks
+from .pngs import load_png_masks
 from .views import hand_object_masks, object_colour, paint_key_from_object
 
 
@@ -47,58 +48,65 @@ def _object_frames(obj: Take, cameras, backgrounds) -> tuple[np.ndarray, list]:
             frames = sample_frames(obj, cam, 2)
             images.extend(frames)
             bgs.extend([bg] * len(frames))
+    if not images:
+        raise SegmentationError(f"{obj.path}: no camera with a background to find the object in "
+                                "(give the background take, or --swatch for the paint colour)")
     return np.stack(images), bgs
 
 
-def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_path: Path | None = None,
-                 swatch=None, every: int = 1, progress: Callable | None = None) -> dict:
+def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, object_path: Path | None = None,
+                 swatch=None, every: int = 1, progress: Callable | None = None, masks: Path | None = None) -> dict:
     """Masks of a take.
 
     Returns {"frame_ns" (T,), "frame_index" (T,C) (the frame of each camera in each group, -1: none),
     "hand" and "object" (T,C,H,W) bool, "paint" (C,H,W) bool for a canonical take with a paint
     colour (from the object take or `swatch` B,G,R) else None, "paint_group" (the group it was
-    segmented in, or None), "report" (warnings, frame grouping,
-    paint statistics), "cameras"}. The groups are the sync stage's (as annotate's), every `every`-th;
-    the paint is segmented in the middle group of a canonical take (the hand holds still there). Raises SegmentationError on
-    input it cannot work with; what only lowers the quality is a warning in the report (and a
-    Python warning)."""
+    segmented in, or None), "report" (warnings, frame grouping, paint statistics), "cameras"}.
+    The groups are the sync stage's (as annotate's), every `every`-th; the paint is segmented in
+    the middle group of a canonical take (the hand holds still there).
+
+    With `masks`, a folder of masks made by another tool, the hand and object masks are read from
+    MASKS/hand/CAM/FRAME.png and MASKS/object/CAM/FRAME.png (FRAME: the camera's frame index, 6
+    digits; nonzero = foreground; without an object folder there is no object) instead of being
+    segmented; the background take is then optional (it sharpens the paint's edges along the
+    silhouette). Raises SegmentationError on input it cannot work with; what only lowers the
+    quality is a warning in the report (and a Python warning)."""
     from ..annotate import sync_groups
 
-    take, background = Take(take_path), Take(background_path)
+    take = Take(take_path)
     kind = take.meta.get("kind")
     report: dict = {"warnings": []}
     missing = [c for c in take.cameras if c not in rig.ids]
     if missing:
         raise SegmentationError(f"{take.path}: cameras {', '.join(missing)} are not in the calibration")
     rig = rig.subset(list(take.cameras))
-    backgrounds = backgrounds_for(take, background, report)
+    if background_path is not None:
+        backgrounds = backgrounds_for(take, Take(background_path), report)
+    elif masks is not None:
+        backgrounds = [None] * len(take.cameras)
+    else:
+        raise SegmentationError(f"{take.path}: no background take (the empty cube) and no masks to use instead")
     model = key = None
     if object_path is not None:
         images, bgs = _object_frames(Take(object_path), take.cameras, backgrounds)
         # a canonical take has no object in it, and the paint on its hand has the (painted)
         # object's colour: there every foreground pixel is hand; in the object take every one is
         # object (a colour split would give its skin-coloured shading to a hand that is not there)
-        model = None if kind in ("canonical", "object") else object_colour(images, bgs)
+        model = None if kind in ("canonical", "object") or masks is not None else object_colour(images, bgs)
         key = paint_key_from_object(images, bgs) if swatch is None else None
     if swatch is not None:
         key = PaintKey.from_swatch(swatch)
     (frame_ns, frame_index), report["frame_groups"] = sync_groups(take)
     frame_ns, frame_index = frame_ns[::every], frame_index[::every]
     w, h = (int(v) for v in rig.size[0])
-    hand = np.zeros((len(frame_ns), len(take.cameras), h, w), bool)
-    obj = np.zeros_like(hand)
-    for t in range(len(frame_ns)):
-        images = np.zeros((len(take.cameras), h, w, 3), np.uint8)
-        present = []
-        for c, cam in enumerate(take.cameras):
-            if frame_index[t, c] >= 0:
-                images[c] = take.read_frame(cam, int(frame_index[t, c]))
-            present.append(frame_index[t, c] >= 0)
-        bgs = [b if p else None for b, p in zip(backgrounds, present)]
-        found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
-        hand[t], obj[t] = (found_object, found_hand) if kind == "object" else (found_hand, found_object)
+    if masks is None:
+        hand, obj = _segment_groups(take, rig, backgrounds, model, frame_index, (h, w), progress)
+    else:
+        hand = load_png_masks(Path(masks) / "hand", take.cameras, frame_index, (h, w))
+        objects = Path(masks) / "object"
+        obj = load_png_masks(objects, take.cameras, frame_index, (h, w)) if objects.is_dir() else np.zeros_like(hand)
         if progress:
-            progress(1)
+            progress(len(frame_index))
     paint = middle = None
     if kind == "canonical":
         if key is None:
@@ -115,6 +123,27 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path, object_
         warnings.warn(message, stacklevel=2)
     return {"frame_ns": frame_ns, "frame_index": frame_index, "hand": hand, "object": obj, "paint": paint,
             "paint_group": middle, "report": report, "cameras": list(take.cameras)}
+
+
+def _segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_index: np.ndarray,
+                    shape: tuple[int, int], progress: Callable | None) -> tuple[np.ndarray, np.ndarray]:
+    """Hand and object masks (T,C,H,W) of the frame groups frame_index (T,C)."""
+    h, w = shape
+    object_take = take.meta.get("kind") == "object"
+    hand = np.zeros((len(frame_index), len(take.cameras), h, w), bool)
+    obj = np.zeros_like(hand)
+    for t in range(len(frame_index)):
+        images = np.zeros((len(take.cameras), h, w, 3), np.uint8)
+        present = frame_index[t] >= 0
+        for c, cam in enumerate(take.cameras):
+            if present[c]:
+                images[c] = take.read_frame(cam, int(frame_index[t, c]))
+        bgs = [b if p else None for b, p in zip(backgrounds, present)]
+        found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
+        hand[t], obj[t] = (found_object, found_hand) if object_take else (found_hand, found_object)
+        if progress:
+            progress(1)
+    return hand, obj
 
 
 def check_output(path: Path, key: str, force: bool) -> None:

@@ -13,8 +13,12 @@ import click
 @click.argument("take", type=click.Path(path_type=Path))
 @click.option("--calib", required=True, type=click.Path(path_type=Path),
               help="The calibration: a folder with cameras.json, or any file load_cameras reads.")
-@click.option("--background", "background", required=True, type=click.Path(path_type=Path),
-              help="A take of the empty cube (the calibration take) for the per-camera backgrounds.")
+@click.option("--background", "background", type=click.Path(path_type=Path), default=None,
+              help="A take of the empty cube (the calibration take) for the per-camera backgrounds; "
+                   "needed unless --masks is given.")
+@click.option("--masks", type=click.Path(path_type=Path), default=None,
+              help="Masks made by another tool, used instead of segmenting: MASKS/hand/CAM/FRAME.png and "
+                   "MASKS/object/CAM/FRAME.png (FRAME: the camera's frame index, 6 digits; nonzero = foreground).")
 @click.option("--object-take", type=click.Path(path_type=Path), default=None,
               help="The object-only take: the object's colour, and the paint colour of a painted object.")
 @click.option("--swatch", default=None, metavar="B,G,R", help="The paint colour, instead of the object take's.")
@@ -22,8 +26,8 @@ import click
 @click.option("--overlays", type=click.Path(path_type=Path), default=None, help="Write PNG overlays into this folder.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="DATASET.h5 to add the masks to.")
 @click.option("--force", is_flag=True, help="Replace the take's masks if DATASET.h5 already has them.")
-def command(take: Path, calib: Path, background: Path, object_take: Path | None, swatch: str | None, every: int,
-            overlays: Path | None, output: Path, force: bool) -> None:
+def command(take: Path, calib: Path, background: Path | None, masks: Path | None, object_take: Path | None,
+            swatch: str | None, every: int, overlays: Path | None, output: Path, force: bool) -> None:
     """Segment TAKE: hand and object masks per view and frame group (background, colour, multi-view
     consistency) and, for a canonical take, the green paint on the hand (docs/segmentation.md)."""
     from tqdm import tqdm
@@ -48,14 +52,45 @@ def command(take: Path, calib: Path, background: Path, object_take: Path | None,
     rig = load_cameras(calib)
     check_output(output, take_key(take), force)
     with tqdm(desc="segment", unit="group", file=sys.stderr) as bar:
-        result = segment_take(take, rig, background, object_take, colour, every, progress=bar.update)
+        result = segment_take(take, rig, background, object_take, colour, every, progress=bar.update, masks=masks)
         groups = len(result["frame_ns"])
     write_masks(output, take_key(take), result, {"segmentation_calibration": str(calib),
-                                                 "segmentation_background": str(background)})
+                                                 "segmentation_background": str(background or ""),
+                                                 "segmentation_masks": str(masks or "")})
+    surface = ""
+    if result["paint"] is not None:
+        surface = _paint_on_surface(output, take_key(take), rig, result)
     if overlays is not None:
         write_overlays(overlays, Take(take), result)
     for message in result["report"]["warnings"]:
         click.echo(f"warning: {message}", err=True)
     paint = "" if result["paint"] is None else f", paint in {int((result['paint'].sum(axis=(1, 2)) > 0).sum())} views"
-    click.echo(f"segment: {groups} groups x {len(result['cameras'])} cameras{paint} -> {output} "
+    click.echo(f"segment: {groups} groups x {len(result['cameras'])} cameras{paint}{surface} -> {output} "
                f"({len(result['report']['warnings'])} warnings, {time.perf_counter() - start:.1f} s)")
+
+
+def _paint_on_surface(output: Path, key: str, rig, result: dict) -> str:
+    """Add the paint's contact value per hand surface point to DATASET.h5 when annotate has fitted
+    the take's poses; returns the summary line's part about it."""
+    import h5py
+    import numpy as np
+
+    from dataset_tools.dataset import add_arrays
+    from manus_capture.paint_contact import paint_on_surface
+
+    with h5py.File(output, "r") as f:
+        group = f.get(key)
+        if group is None or "joint_angles" not in group:
+            click.echo(f"note: {output} has no poses of {key} (run annotate first): no contact per surface point",
+                       err=True)
+            return ""
+        frame_ns, angles, bones = group["frame_ns"][()], group["joint_angles"][()], group["bone_lengths"][()]
+    at = np.flatnonzero(frame_ns == result["frame_ns"][result["paint_group"]])
+    if not len(at) or not np.isfinite(angles[at[0]]).all():
+        click.echo(f"note: no fitted pose for the paint's frame group of {key}: no contact per surface point", err=True)
+        return ""
+    t = result["paint_group"]
+    arrays = paint_on_surface(rig.subset(result["cameras"]), result["paint"], result["hand"][t], angles[at[0]], bones)
+    add_arrays(output, key, arrays)
+    painted = int((arrays["paint/contact"] > 0.5).sum())
+    return f", paint on {painted} of {int((arrays['paint/voters'] > 0).sum())} seen surface points"

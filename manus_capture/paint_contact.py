@@ -24,10 +24,7 @@ def paint_on_surface(rig: CameraRig, paint: np.ndarray, hand_masks: np.ndarray, 
     `paint/voters` (P,) the views that voted, `paint/points_rest` (P,3) and `paint/bone` (P,) the
     template's points. paint and hand_masks (C,H,W) of the rig's cameras; angles (26,) the pose."""
     template = capsule_template(bone_lengths)
-    R, t = template.skeleton.bone_transforms(np.asarray(angles, np.float64))
-    Rb = R[template.bone]
-    points = np.einsum("pij,pj->pi", Rb, template.points_rest) + t[template.bone]
-    normals = np.einsum("pij,pj->pi", Rb, template.normals_rest)
+    points, normals = template.posed(angles, normals=True)
     value, voters = contact_votes(rig, points, paint, hand_masks, normals)
     return {"paint/contact": value.astype(np.float32), "paint/voters": voters.astype(np.int32),
             "paint/points_rest": template.points_rest.astype(np.float32), "paint/bone": template.bone.astype(np.int32)}

@@ -44,11 +44,19 @@ class PointHand:
     def __len__(self) -> int:
         return len(self.points_rest)
 
+    def posed(self, angles: np.ndarray, normals: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        """Posed points (...,P,3) float64 for angles (...,26), and their normals when asked for
+        (None for a hand built without them)."""
+        R, t = self.skeleton.bone_transforms(np.asarray(angles, dtype=np.float64))
+        Rb = R[..., self.bone, :, :]
+        points = np.einsum("...pij,pj->...pi", Rb, self.points_rest) + t[..., self.bone, :]
+        if not normals or self.normals_rest is None:
+            return points, None
+        return points, np.einsum("...pij,pj->...pi", Rb, self.normals_rest)
+
     def pose_batch(self, angles: torch.Tensor) -> torch.Tensor:
         """Posed points (T,P,3) for angles (T,26)."""
-        R, t = self.skeleton.bone_transforms(np.asarray(angles, dtype=np.float64))
-        points = np.einsum("...pij,pj->...pi", R[..., self.bone, :, :], self.points_rest) + t[..., self.bone, :]
-        return torch.as_tensor(points, dtype=torch.float32)
+        return torch.as_tensor(self.posed(angles)[0], dtype=torch.float32)
 
     def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]:
         """Posed centres (P,3) and isotropic covariances (P,3,3) for angles (26,)."""

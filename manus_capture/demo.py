@@ -44,8 +44,8 @@ class DemoConfig:
     fps: float = 30.0
     subject: str = "s01"
     object: str = "mug"
-    # the canonical pose is the median of the canonical take's frames: 2 frames of a 0.1 s take
-    # left its finger angles 4.0 deg RMS off, 10 frames 3.6 deg (docs/contacts.md)
+    # the canonical pose is the median of the canonical take's frames: at 20 fps, the 2 frames of a
+    # 0.1 s take left its finger angles 4.0 deg RMS off, the 10 of 0.5 s 3.6 deg (docs/contacts.md)
     durations: dict = field(default_factory=lambda: {"calibration": 0.1, "hand": 2.0, "object": 0.1,
                                                      "grasp": 2.0, "canonical": 0.5})
     views: tuple[int, ...] = (5, 10, 20, 0)        # camera ablation; 0 = all cameras

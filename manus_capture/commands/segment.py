@@ -85,11 +85,11 @@ def _paint_on_surface(output: Path, key: str, rig, result: dict) -> str:
                        err=True)
             return ""
         frame_ns, angles, bones = group["frame_ns"][()], group["joint_angles"][()], group["bone_lengths"][()]
-    at = np.flatnonzero(frame_ns == result["frame_ns"][result["paint_group"]])
+    t = result["paint_group"]
+    at = np.flatnonzero(frame_ns == result["frame_ns"][t])
     if not len(at) or not np.isfinite(angles[at[0]]).all():
         click.echo(f"note: no fitted pose for the paint's frame group of {key}: no contact per surface point", err=True)
         return ""
-    t = result["paint_group"]
     arrays = paint_on_surface(rig.subset(result["cameras"]), result["paint"], result["hand"][t], angles[at[0]], bones)
     add_arrays(output, key, arrays)
     painted = int((arrays["paint/contact"] > 0.5).sum())

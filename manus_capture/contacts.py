@@ -5,9 +5,9 @@ nearest object Gaussian is closer than tau (4 mm), and the reverse gives the con
 object. Over a take the instantaneous maps (T,G) accumulate by maximum into one map (G,) per
 hand Gaussian, which is what the paint on the subject's hand records.
 
-Anything with `pose(angles) -> {"means", "covars"}`, `pose_batch(angles) -> means` and
-`opacities` is a hand model here: the trained MANUS-Hand (splat.hand.HandGaussians) and the
-capsule template of the baseline (template.capsule_template) are scored by the same code.
+Anything with `pose(angles) -> {"means", "covars"}` and `pose_batch(angles) -> means` is a hand
+model here: the trained MANUS-Hand (splat.hand.HandGaussians) and the capsule template of the
+baseline (template.capsule_template) are scored by the same code.
 """
 
 from __future__ import annotations
@@ -19,14 +19,16 @@ import numpy as np
 import torch
 
 TAU_M = 0.004
+# Contact is drawn on the skin, which is opaque: every Gaussian is splatted this opaque, whatever
+# opacity it learned for the photographs. With the learned opacities a surfel of 0.4 on the
+# palmar side let the back of the finger behind it show through, and the paint's label was
+# diluted below the threshold (docs/contacts.md, "Rendering contact").
+SURFACE_OPACITY = 0.99
 CHUNK = 1 << 12  # hand points per torch.cdist block on the GPU: 4096 x M distances at a time
 
 
 class PosedModel(Protocol):
     """A hand model the contact and rendering code can pose."""
-
-    @property
-    def opacities(self) -> torch.Tensor: ...
 
     def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]: ...
 
@@ -120,15 +122,18 @@ def model_contacts(hand, angles: np.ndarray, obj, tau: float = TAU_M, soft: bool
 
 def render_values(model: PosedModel, angles: np.ndarray, values: np.ndarray, viewmats: torch.Tensor,
                   Ks: torch.Tensor, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Splat a per-Gaussian value (G,) as colour of the posed hand into C cameras: (composited
-    value (C,H,W), premultiplied by alpha as rasterize() returns it, and alpha (C,H,W)). The
-    value of the visible surface is their ratio where alpha > 0 (surface_value)."""
+    """Splat a per-Gaussian value (G,) as colour of the posed hand, every Gaussian SURFACE_OPACITY
+    opaque, into C cameras: (composited value (C,H,W), premultiplied by alpha as rasterize()
+    returns it, and alpha (C,H,W)). The value of the visible surface is their ratio where
+    alpha > 0 (surface_value)."""
     from .splat.rasterize import rasterize
 
     with torch.no_grad():
         posed = model.pose(torch.as_tensor(np.asarray(angles, dtype=np.float32)))
-        colours = torch.as_tensor(np.asarray(values), dtype=posed["means"].dtype)[:, None]
-        out, alpha = rasterize(posed["means"], None, None, model.opacities, colours, viewmats, Ks, width, height,
+        means = posed["means"]
+        colours = torch.as_tensor(np.asarray(values), dtype=means.dtype, device=means.device)[:, None]
+        opacities = torch.full((len(means),), SURFACE_OPACITY, dtype=means.dtype, device=means.device)
+        out, alpha = rasterize(means, None, None, opacities, colours, viewmats, Ks, width, height,
                                covars=posed["covars"])
     return out[..., 0].cpu().numpy(), alpha[..., 0].cpu().numpy()
 

@@ -33,13 +33,12 @@ class PointHand:
     deviation `sigma`: the capsule template, or any surface sampled on the bones."""
 
     def __init__(self, skeleton: HandSkeleton, points_rest: np.ndarray, bone: np.ndarray, sigma: float,
-                 opacity: float = 0.99, normals_rest: np.ndarray | None = None) -> None:
+                 normals_rest: np.ndarray | None = None) -> None:
         self.skeleton = skeleton
         self.points_rest = np.asarray(points_rest, dtype=np.float64)
         self.normals_rest = None if normals_rest is None else np.asarray(normals_rest, dtype=np.float64)
         self.bone = np.asarray(bone, dtype=np.int64)
         self.sigma = float(sigma)
-        self.opacities = torch.full((len(self.points_rest),), float(opacity))
 
     def __len__(self) -> int:
         return len(self.points_rest)

@@ -43,7 +43,7 @@ def scene():
     R, t = pose[0][0], pose[1][0]
     obj = surface_samples(lambda x: grasp.object.sdf(x, (R, t)), t, grasp.object.radius + 0.01, 200_000)
     hand = grasp.hand
-    truth_hand = PointHand(hand.skeleton, hand.surface_rest, hand.surface_bone, 0.4 * hand.spacing, 0.5)
+    truth_hand = PointHand(hand.skeleton, hand.surface_rest, hand.surface_bone, 0.4 * hand.spacing)
     times = np.linspace(0.0, 2.0, 121)
     return {"cfg": cfg, "grasp": grasp, "canonical": canonical, "object": obj, "truth_hand": truth_hand,
             "angles": grasp.motion.hand_angles(times), "times": times}
@@ -98,7 +98,7 @@ def test_true_contact_rendered_on_the_canonical_pose_matches_the_paint_labels(sc
     truth = cube.motion.contact_accumulated().astype(np.float32)
     scores, pred = score_contacts(scene["truth_hand"], canonical, truth, cube.cameras, paint, views)
     # The only differences are at the paint's edges: the regions are 20-80 px at 320x180 (a pixel
-    # is 2-3 mm), so half a pixel of boundary costs a quarter of the IoU (measured 0.73; template 0.58).
+    # is 2-3 mm), so half a pixel of boundary costs a quarter of the IoU (measured 0.68; template 0.58).
     assert scores.mean_iou > 0.65 and scores.pooled_iou > 0.65, scores.to_json()
     template = capsule_template(cube.hand.skeleton.bone_lengths)
     maps = hand_object_contacts(template, scene["angles"], scene["object"])

@@ -46,7 +46,7 @@ sys.path.insert(0, str(ROOT))
 from dataset_tools.calibration.boards import board_from_dict  # noqa: E402
 from dataset_tools.calibration.report import triangulation_check  # noqa: E402
 from dataset_tools.calibration.rig import calibrate_rig  # noqa: E402
-from dataset_tools.cameras import CameraRig  # noqa: E402
+from manus_core.cameras import CameraRig  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "caliscope_4cam_charuco"
 VIDEOS = DATA / "calibration" / "extrinsic"

@@ -39,7 +39,7 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from dataset_tools.hand.ik import fit_hand  # noqa: E402
-from dataset_tools.hand.skeleton import FINGERTIPS, HandSkeleton, rodrigues  # noqa: E402
+from manus_core.skeleton import FINGERTIPS, HandSkeleton, rodrigues  # noqa: E402
 from dataset_tools.simulated_detector import SimulatedDetector  # noqa: E402
 from dataset_tools.triangulation import triangulate_frames  # noqa: E402
 from rig.layouts import make_rig  # noqa: E402

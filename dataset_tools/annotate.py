@@ -30,23 +30,18 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import CameraRig
-from .dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version
+from manus_core.cameras import CameraRig
+from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version
 from .hand.bones import (BoneLengthError, BoneLengths, bone_lengths_from_samples, bone_samples,
                          estimate_bone_lengths, load_subject, save_subject)
 from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
-from .hand.skeleton import HandSkeleton
+from manus_core.skeleton import HandSkeleton
 from .one_euro import one_euro
-from .take import Take
+from manus_core.take import Take
 from .triangulation import triangulate_frames
+from manus_core.errors import AnnotateError
 
 Groups = tuple[np.ndarray, np.ndarray]  # frame_ns (T,), frame_index (T,C)
-
-
-class AnnotateError(ValueError):
-    """Bad input to annotate (calibration, cameras, keypoints, takes); names the file and the problem."""
-
-    exit_code = 2
 
 
 @dataclass(frozen=True)
@@ -364,7 +359,7 @@ def take_key(path: Path) -> str:
 def session_subject(session: Path) -> str | None:
     """The subject named by SESSION/session.toml (read by the recorder's own reader, so a malformed
     file gives its SessionError); None when there is no file or it names no subject."""
-    from rig.session import load_session  # the recorder owns the format; imported where it is used
+    from manus_core.session import load_session  # the recorder owns the format; imported where it is used
 
     found = load_session(session)
     return (found.subject or None) if found is not None else None

@@ -27,12 +27,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-
-class OneEuroError(ValueError):
-    """Bad input to the filter (shapes, timestamps, parameters); the message says which."""
-
-    exit_code = 2
+from manus_core.errors import OneEuroError
 
 
 def _one_euro_loop(x: np.ndarray, t: np.ndarray, min_cutoff: float, beta: float,

@@ -32,8 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import CameraRig
-from .hand.skeleton import BONES
+from manus_core.cameras import CameraRig
+from manus_core.skeleton import BONES
+from manus_core.errors import SimulatedDetectorError
 
 # Radius (m) of the flesh around each bone for self-occlusion: the thumb's metacarpal (thenar) and
 # the phalanges; the other metacarpals are inside the palm triangles.
@@ -50,12 +51,6 @@ _BLOCK = 16  # frames per block of the occlusion tests
 
 # ray-test callable: (frame (N,), origin (N,3), unit direction (N,3)) -> distance to the first hit (N,)
 Occluder = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
-
-
-class SimulatedDetectorError(ValueError):
-    """Inputs the simulated detector cannot use (shapes, ground truth, cameras)."""
-
-    exit_code = 2
 
 
 def _segment_distances(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:

@@ -6,7 +6,7 @@ frames assigned to the rig's nominal ticks (the frame groups later stages work o
 spread of exposure times within each group, an optical check against LED flashes, a verdict.
 
 Everything below works on plain arrays; `analyze_take` / `sync_take` run it on a take folder
-(dataset_tools.take.Take) and write TAKE/sync_report.json, .md and .png. docs/sync.md explains
+(manus_core.take.Take) and write TAKE/sync_report.json, .md and .png. docs/sync.md explains
 the estimator and what every number means.
 
 Times: ns on the host clock (CLOCK_MONOTONIC) unless a name says otherwise.
@@ -23,19 +23,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from manus_core.errors import SyncError, SyncReportExists
 
 REPORT_VERSION = 1
 SYNC_MODES = ("free-run", "software-trigger", "hardware-trigger")
-
-
-class SyncError(ValueError):
-    """Input the sync stage cannot work with; names the file and the problem (exit code 2)."""
-
-    exit_code = 2
-
-
-class SyncReportExists(SyncError, FileExistsError):
-    """A sync report is already there and overwriting was not asked for."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -780,7 +771,7 @@ def take_brightness(take) -> BrightnessFn:
     wanted ones are decoded, at 1/8 scale in grey (JPEG DCT scaling, no full decode)."""
     import cv2
 
-    from .take import TakeError
+    from manus_core.take import TakeError
 
     def brightness(cam: str, indices: np.ndarray) -> np.ndarray:
         wanted = {int(i): j for j, i in enumerate(indices)}
@@ -809,7 +800,7 @@ def analyze_take(path, *, latency_ns: Mapping[str, float] | None = None, optical
                  settings: SyncSettings | None = None,
                  progress: Callable[[int], None] | None = None) -> tuple[SyncResult, dict]:
     """Run the sync validation on a take folder: (result, sync_report dict). Nothing is written."""
-    from .take import Take
+    from manus_core.take import Take
 
     take = path if isinstance(path, Take) else Take(path)
     meta_path = take.path / "take.json"
@@ -941,8 +932,8 @@ def sync_take(path, *, force: bool = False, latency_ns: Mapping[str, float] | No
 
     Refuses (SyncReportExists) to replace an existing report unless `force`; each file is written
     atomically, the JSON last, so a report on disk always has its companions."""
-    from .fileio import write_atomic
-    from .take import Take
+    from manus_core.fileio import write_atomic
+    from manus_core.take import Take
 
     take = Take(path)
     target = refuse_overwrite(take.path, force)

@@ -33,13 +33,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .cameras import CameraRig
-
-
-class TriangulationError(ValueError):
-    """Inputs that cannot be triangulated as given (shapes, camera ids, parameters)."""
-
-    exit_code = 2
+from manus_core.cameras import CameraRig
+from manus_core.errors import TriangulationError
 
 
 # Pairs (a, b), a < b, ordered by b then a: the first m(m-1)/2 pairs are all pairs among the

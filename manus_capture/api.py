@@ -11,19 +11,19 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS: dict[str, str] = {
-    "CameraRig": "dataset_tools.cameras",
+    "CameraRig": "manus_core.cameras",
     "load_cameras": "dataset_tools.calibration.formats",
     "triangulate": "dataset_tools.triangulation",
     "one_euro": "dataset_tools.one_euro",
-    "HandSkeleton": "dataset_tools.hand.skeleton",
+    "HandSkeleton": "manus_core.skeleton",
     "fit_hand": "dataset_tools.hand.ik",
-    "read_dataset": "dataset_tools.dataset",
+    "read_dataset": "manus_core.dataset",
     "frame_groups": "dataset_tools.sync",
     "hand_keypoint_detector": "dataset_tools.keypoints",
     "Detector": "dataset_tools.keypoints",
     "rasterize": "manus_capture.splat",
-    "load_rig": "rig.config",
-    "RigConfig": "rig.config",
+    "load_rig": "manus_core.rig_config",
+    "RigConfig": "manus_core.rig_config",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from manus_core.errors import BuildError
 
 HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PSNR
 # Contact is measured between Gaussian centres, so both models' centres should lie on their
@@ -38,12 +39,6 @@ def surface_hand_config(iterations: int, **changes):
 
     lr = LearningRates(means=HAND_MEANS_LR, means_final=HAND_MEANS_LR / 100, sh0=1e-2, log_scales=1e-2)
     return HandConfig.surfels(iterations, **{"lr": lr, **changes})
-
-
-class BuildError(ValueError):
-    """The takes cannot give a model (exit code 2)."""
-
-    exit_code = 2
 
 
 @dataclass

@@ -14,6 +14,8 @@ import sys
 
 import click
 
+from manus_core.errors import ManusError
+
 from . import __version__
 
 # name -> (module under manus_capture.commands that defines `command`, one-line help)
@@ -82,15 +84,11 @@ class LazyGroup(click.Group):
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
             ctx.exit(130)
-        except Exception as exc:
-            # Errors of the lower layers carry an exit_code when they describe bad input; they
-            # get one line, not a traceback.
-            code = getattr(exc, "exit_code", None)
-            if isinstance(code, int):
-                err = click.ClickException(str(exc))
-                err.exit_code = code
-                raise err from exc
-            raise
+        except ManusError as exc:
+            # Every error raised on purpose carries its exit code: one line, not a traceback.
+            err = click.ClickException(str(exc))
+            err.exit_code = exc.exit_code
+            raise err from exc
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -158,7 +158,7 @@ def contact_image(value: np.ndarray, alpha: np.ndarray, image: np.ndarray | None
 
 def write_contacts(path, key: str, maps: ContactMaps, attrs: dict) -> None:
     """Store a take's contact maps in DATASET.h5 (group `key`/contacts, compressed), atomically."""
-    from dataset_tools.dataset import add_arrays
+    from manus_core.dataset import add_arrays
 
     add_arrays(path, key, {"contacts/instant": maps.instant.astype(np.float16),
                            "contacts/accumulated": maps.accumulated,

@@ -19,20 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
-from dataset_tools.fileio import write_atomic
+from manus_core.fileio import write_atomic
 
 from .evaluate import MIN_PAINT_PX
+from manus_core.errors import DemoError
 
 SURFACE_BAND_M = 0.003    # Gaussians this close to the true hand surface are scored on its contact
 
 TAKES = (("calibration", "00-calibration"), ("hand", "01-hand"), ("object", "02-object"),
          ("grasp", "03-grasp1"), ("canonical", "04-canonical1"))
-
-
-class DemoError(RuntimeError):
-    """A demo stage failed (exit code 1): the message names the stage."""
-
-    exit_code = 1
 
 
 @dataclass(frozen=True)
@@ -100,7 +95,7 @@ class Demo:
     def record(self) -> dict:
         from rig.layouts import make_rig
         from rig.recorder import record_take
-        from rig.session import with_sim_subject
+        from rig.sim.subject import with_sim_subject
 
         c = self.config
         rig = make_rig("cube53", cameras=c.cameras, resolution=c.resolution, fps=c.fps, sync="software-trigger",
@@ -133,7 +128,7 @@ class Demo:
 
     def calibrate(self) -> dict:
         from dataset_tools.calibration.formats import load_cameras
-        from dataset_tools.cameras import CameraRig
+        from manus_core.cameras import CameraRig
         from manus_capture.splat.takes import truth_cameras
 
         truth = truth_cameras(self.take["calibration"])
@@ -156,7 +151,7 @@ class Demo:
 
     def annotate(self) -> dict:
         from dataset_tools.annotate import AnnotateOptions, annotate, take_key
-        from dataset_tools.dataset import read_dataset
+        from manus_core.dataset import read_dataset
 
         takes = [self.take[k] for k in ("hand", "grasp", "canonical")]
         summary = annotate(takes, self.calib, self.dataset, AnnotateOptions(keypoints="simulated"), force=True)
@@ -244,7 +239,7 @@ class Demo:
         from scipy.spatial import cKDTree
 
         from dataset_tools.annotate import take_key
-        from dataset_tools.dataset import read_dataset
+        from manus_core.dataset import read_dataset
         from manus_capture.contacts import model_contacts, write_contacts
 
         key = take_key(self.take["grasp"])
@@ -270,7 +265,7 @@ class Demo:
         """Contact against the segmented paint in the canonical take's views; the capsule baseline;
         the camera ablation (models retrained on fewer cameras)."""
         from dataset_tools.annotate import take_key
-        from dataset_tools.dataset import read_dataset
+        from manus_core.dataset import read_dataset
         from manus_capture.contacts import model_contacts
         from manus_capture.evaluate import canonical_pose, mask_scores, pick_views, score_contacts, spread_cameras
         from manus_capture.template import capsule_template
@@ -332,8 +327,8 @@ def pictures(demo: Demo, count: int = 3) -> list[tuple[str, str]]:
     import shutil
 
     from dataset_tools.annotate import take_key
-    from dataset_tools.dataset import read_dataset
-    from dataset_tools.take import Take
+    from manus_core.dataset import read_dataset
+    from manus_core.take import Take
 
     from .contacts import contact_image
     from .evaluate import render_contacts

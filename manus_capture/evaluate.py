@@ -15,21 +15,16 @@ import cv2
 import numpy as np
 import torch
 
-from dataset_tools.cameras import CameraRig, scale_intrinsics
+from manus_core.cameras import CameraRig, scale_intrinsics
 
 from .contacts import PosedModel, render_values, surface_value
 from .splat.trainer import world_to_camera
+from manus_core.errors import EvaluateError
 
 MIN_PAINT_PX = 20       # a view "shows paint" with at least this many paint pixels
 DEFAULT_VIEWS = 10      # ground-truth views per sequence, as in the paper
 THRESHOLD = 0.5         # rendered contact value that counts as contact
 SUPERSAMPLE = 3
-
-
-class EvaluateError(ValueError):
-    """Evaluation cannot run on the given input (exit code 2)."""
-
-    exit_code = 2
 
 
 @dataclass(frozen=True)

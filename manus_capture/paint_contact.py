@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 from dataset_tools.segmentation import contact_votes
 
 from .template import capsule_template

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from dataset_tools.hand.skeleton import BONES, DEFAULT_BONE_LENGTHS, HandSkeleton
+from manus_core.skeleton import BONES, DEFAULT_BONE_LENGTHS, HandSkeleton
 from rig.sim.shapes import capsule_distances, capsule_surface
 
 # Generic radii (m) per bone of the average adult hand: metacarpal, proximal, middle, distal

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import CameraConfig, RigConfig, SimCameraConfig, SimConfig, StorageConfig, LedConfig
+from manus_core.rig_config import CameraConfig, RigConfig, SimCameraConfig, SimConfig, StorageConfig, LedConfig
 
 
 CENTRE_AIM = (0.0, 0.0, -0.05)     # just above the table top: where the hand works

@@ -35,13 +35,14 @@ from typing import Any
 
 import numpy as np
 
-from dataset_tools.fileio import write_atomic
+from manus_core.fileio import write_atomic
 
 from .cameras import Camera, CameraDisconnected, Frame
 from .clock import Clock, MonotonicClock, VirtualClock
-from .config import RigConfig
+from manus_core.rig_config import RigConfig
 from .mkv import MkvWriter
-from .session import check_kind, check_take_name, open_session, utc_now
+from manus_core.session import check_kind, check_take_name, open_session, utc_now
+from manus_core.errors import DiskSpaceError, RecordError
 
 FRAME_COLUMNS = "cam,seq,t_device_ns,t_host_ns,bytes,flags"
 FLAG_HOST_JPEG = 1            # frames.csv flags bit: the host encoded a raw frame to JPEG
@@ -56,16 +57,6 @@ STALL_S = 2.0                 # a camera that hands out nothing for this long ha
 FIRST_FRAME_S = 5.0           # ... except before its first frame (streams take time to start)
 JOIN_S = 10.0                 # a reader whose read() never returns is abandoned after this
 WRITE_BATCH = 32              # frames a writer that fell behind stores in one system call
-
-
-class RecordError(ValueError):
-    """A take that cannot be recorded as asked (exists, bad options, no disk); names the path."""
-
-    exit_code = 2
-
-
-class DiskSpaceError(RecordError):
-    """Less free disk than the take needs."""
 
 
 class StopFlag:

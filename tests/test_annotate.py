@@ -15,16 +15,16 @@ from scipy.spatial.transform import Rotation
 import dataset_tools.annotate as annotate_module
 from dataset_tools.annotate import (AnnotateError, AnnotateOptions, annotate, annotate_arrays,
                                     frame_groups_from_host_times)
-from dataset_tools.dataset import FLAGS, read_dataset
+from manus_core.dataset import FLAGS, read_dataset
 from dataset_tools.hand.bones import estimate_bone_lengths, load_subject
-from dataset_tools.hand.skeleton import rodrigues
+from manus_core.skeleton import rodrigues
 from dataset_tools.keypoints.keypoints2d import CameraKeypoints, TakeKeypoints, write_keypoints_h5
 from dataset_tools.simulated_detector import SimulatedDetector
-from dataset_tools.take import Take
+from manus_core.take import Take
 from dataset_tools.triangulation import triangulate_frames
 from manus_capture.cli import cli
 from rig.layouts import make_rig
-from rig.session import SessionError, open_session
+from manus_core.session import SessionError, open_session
 from rig.sim.cube import true_cameras
 from rig.sim.hand import make_hand
 from rig.sim.motion import make_motion
@@ -355,7 +355,7 @@ def test_recorded_sim_take_end_to_end(tmp_path):
     result = runner.invoke(cli, ["record", "--rig", str(rig_file), "--session", str(tmp_path / "S"), "--take", "g",
                                  "--kind", "grasp", "--duration", "0.3"])
     assert result.exit_code == 0, result.output
-    from rig.config import load_rig
+    from manus_core.rig_config import load_rig
     from rig.sim.cube import true_cameras
 
     true_cameras(load_rig(rig_file)).save(tmp_path / "cameras.json")

@@ -23,7 +23,7 @@ from click.testing import CliRunner
 
 from rig.cameras import Camera, CameraDisconnected, CameraError
 from rig.cameras.aravis import AravisCamera, FrameIdUnwrapper, list_aravis_cameras
-from rig.config import CameraConfig
+from manus_core.rig_config import CameraConfig
 
 try:
     from rig.cameras.aravis import aravis

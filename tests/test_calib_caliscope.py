@@ -17,7 +17,7 @@ import pytest
 from dataset_tools.calibration.boards import board_from_dict
 from dataset_tools.calibration.report import scale_check, triangulation_check
 from dataset_tools.calibration.rig import calibrate_rig
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 
 SQUARE = 0.054
 BOARD = {"type": "charuco", "cols": 4, "rows": 5, "square": SQUARE, "marker": 0.75 * SQUARE,

@@ -117,7 +117,7 @@ def recorded(tmp_path_factory):
     calibrated by `manus-capture calibrate rig` with the true intrinsics (no poses) as --intrinsics."""
     from click.testing import CliRunner
 
-    from dataset_tools.cameras import CameraRig
+    from manus_core.cameras import CameraRig
     from manus_capture.cli import cli
     from rig.recorder import record_take
 

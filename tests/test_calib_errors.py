@@ -13,7 +13,7 @@ from dataset_tools.calibration.extrinsics import ExtrinsicsError, calibrate_boar
 from dataset_tools.calibration.detect import Detection
 from dataset_tools.calibration.boards import CalibrationError
 from dataset_tools.calibration.rig import calibrate_rig
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 
 CHARUCO = board_from_dict({"type": "charuco", "cols": 4, "rows": 5, "square": 0.054, "marker": 0.0405,
                            "dictionary": "DICT_4X4_1000", "inverted": True})

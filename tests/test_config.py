@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from manus_capture.cli import cli
-from rig.config import ConfigError, load_rig, rig_to_toml
+from manus_core.rig_config import ConfigError, load_rig, rig_to_toml
 from rig.layouts import make_rig
 
 GOOD = """

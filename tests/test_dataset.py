@@ -8,10 +8,10 @@ import h5py
 import numpy as np
 import pytest
 
-from dataset_tools.dataset import FLAGS, DatasetError, DatasetWriter, TakeAnnotation, read_dataset
+from manus_core.dataset import FLAGS, DatasetError, DatasetWriter, TakeAnnotation, read_dataset
 from dataset_tools.hand.bones import (BONE_NAMES, BoneLengthError, estimate_bone_lengths, load_subject,
                                       save_subject)
-from dataset_tools.hand.skeleton import BONES, DEFAULT_BONE_LENGTHS, LOWER, UPPER, HandSkeleton
+from manus_core.skeleton import BONES, DEFAULT_BONE_LENGTHS, LOWER, UPPER, HandSkeleton
 from dataset_tools.simulated_detector import (SimulatedDetector, SimulatedDetectorError, joints_at, keypoints_for_take,
                                              read_ground_truth, true_rig)
 from rig.layouts import make_rig

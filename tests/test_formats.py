@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dataset_tools.calibration.formats import READABLE, WRITABLE, detect_format, load_cameras, save_cameras
-from dataset_tools.cameras import CalibrationFileError, CameraRig
+from manus_core.cameras import CalibrationFileError, CameraRig
 
 
 def _random_rig(n: int = 5, seed: int = 1, k3: bool = True) -> CameraRig:

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dataset_tools.hand.ik import IKError, _HandModel, fit_hand, unwrap_rotations, wrap_rotations
-from dataset_tools.hand.skeleton import FINGERTIPS, LOWER, UPPER, HandSkeleton, rodrigues
+from manus_core.skeleton import FINGERTIPS, LOWER, UPPER, HandSkeleton, rodrigues
 from rig.sim.hand import make_hand
 from rig.sim.motion import make_motion
 from rig.sim.objects import make_object

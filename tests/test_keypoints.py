@@ -10,7 +10,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 from dataset_tools.keypoints import ModelError, ModelNotInstalledError, hand_keypoint_detector
 from dataset_tools.keypoints import boxes as bx
 from dataset_tools.keypoints.decoding import decode_heatmaps, decode_simcc

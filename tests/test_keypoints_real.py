@@ -26,7 +26,7 @@ from test_keypoints_take import make_take
 
 from dataset_tools.keypoints import hand_keypoint_detector
 from dataset_tools.keypoints.install import bundle_dir, installed_manifest
-from dataset_tools.take import Take
+from manus_core.take import Take
 from manus_capture.cli import cli
 
 # InterHand2.6M orders each hand tip-to-base per finger (thumb4..thumb1, ..., pinky4..pinky1), wrist last.

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dataset_tools.take import Take, TakeError
+from manus_core.take import Take, TakeError
 
 FPS = 120
 

@@ -14,7 +14,7 @@ import pytest
 import serial
 from click.testing import CliRunner
 
-from rig.config import LedConfig
+from manus_core.rig_config import LedConfig
 from rig.leds import (
     AsciiLedController,
     Backoff,

@@ -10,10 +10,10 @@ from click.testing import CliRunner
 
 from manus_capture.cli import cli
 from manus_capture.commands.protocol import protocol_steps
-from rig.config import rig_to_toml
+from manus_core.rig_config import rig_to_toml
 from rig.layouts import make_rig
 from rig.recorder import TakeResult
-from rig.session import load_session
+from manus_core.session import load_session
 
 
 def test_protocol_steps_follow_the_paper():
@@ -65,7 +65,7 @@ def test_protocol_prompts_the_operator_on_a_real_rig(tmp_path, monkeypatch):
     recorded = []
 
     def fake_record(rig, session, take, kind, duration_s, **kw):
-        from rig.session import open_session
+        from manus_core.session import open_session
         recorded.append((take, kind, duration_s))
         open_session(session, rig).update_take(take, kind=kind, status="complete")
         return TakeResult(session / take, "complete", "", False, [])

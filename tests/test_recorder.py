@@ -20,15 +20,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dataset_tools.take import Take
+from manus_core.take import Take
 from manus_capture.cli import cli
 from rig.cameras import CameraDisconnected, CameraInfo, Frame
 from rig.clock import VirtualClock
-from rig.config import rig_to_toml
+from manus_core.rig_config import rig_to_toml
 from rig.layouts import make_rig
 from rig.mkv import MkvWriter
 from rig.recorder import FLAG_HOST_JPEG, Recorder, StopFlag, flash_offsets, record_take
-from rig.session import load_session
+from manus_core.session import load_session
 
 PERIOD_NS = 1e9 / 120
 

@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from dataset_tools.annotate import take_key
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 from manus_capture.cli import cli
 from rig.layouts import make_rig
 from rig.recorder import record_take
@@ -161,7 +161,7 @@ def test_segment_bad_input(canon_session, tmp_path):
 
 def _groups(session, take):
     from dataset_tools.annotate import sync_groups
-    from dataset_tools.take import Take
+    from manus_core.take import Take
 
     (frame_ns, frame_index), _ = sync_groups(Take(session / "S" / take))
     return frame_ns, frame_index
@@ -211,7 +211,7 @@ def test_segment_paint_on_the_hand_surface(canon_session, tmp_path):
     surface points; the votes agree with the simulator's true paint on the hand."""
     from scipy.spatial import cKDTree
 
-    from dataset_tools.dataset import add_arrays
+    from manus_core.dataset import add_arrays
 
     session = canon_session
     frame_ns, _ = _groups(session, "canon")

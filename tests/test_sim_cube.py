@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from rig.cameras import Camera, CameraError
-from rig.config import SimCameraConfig
+from manus_core.rig_config import SimCameraConfig
 from rig.layouts import make_rig
 from rig.sim.clocks import CameraClock
 from rig.sim.cube import SimulatedCube, true_cameras

@@ -9,10 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dataset_tools.hand.skeleton import (
-    BONES, DEFAULT_BONE_LENGTHS, DOF_NAMES, FINGERTIPS, JOINT_NAMES, LOWER, PARENTS, UPPER,
-    HandSkeleton, rodrigues,
-)
+from manus_core.skeleton import (BONES, DEFAULT_BONE_LENGTHS, DOF_NAMES, FINGERTIPS, JOINT_NAMES, LOWER, PARENTS, UPPER, HandSkeleton, rodrigues)
 
 torch = pytest.importorskip("torch")
 
@@ -167,5 +164,5 @@ def test_clamp_respects_limits():
 
 
 def test_module_does_not_import_torch():
-    code = "import sys, dataset_tools.hand.skeleton; assert 'torch' not in sys.modules"
+    code = "import sys, manus_core.skeleton; assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -8,7 +8,7 @@ import warnings
 import pytest
 import torch
 
-from dataset_tools.hand.skeleton import BONES
+from manus_core.skeleton import BONES
 from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
 from manus_capture.splat.gaussians import rgb_to_sh0
 from manus_capture.splat.hand import (HandConfig, HandGaussians, bone_neighbours, evaluate_hand,

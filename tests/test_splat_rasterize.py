@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 from manus_capture.splat import rasterize
 from manus_capture.splat.gaussians import covariance, quat_to_rotmat
 from manus_capture.splat.rasterize import project

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from dataset_tools.hand.skeleton import BONES
+from manus_core.skeleton import BONES
 from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, point_segment_distance, train_hand
 from manus_capture.splat.takes import (crop_to_masks, crop_views, frames_with_seq, hand_frames_from_truth,
                                        hand_views_from_take, object_views_from_take, still_frames, truth_cameras,
@@ -150,7 +150,7 @@ def test_crop_keeps_every_pixel_where_the_shifted_camera_sees_it():
 
 
 def test_frames_are_found_by_sequence_number(small_hand_take):
-    from dataset_tools.take import Take
+    from manus_core.take import Take
 
     take = Take(small_hand_take)
     index = frames_with_seq(take, take.cameras[:2], [0, 5, 999])
@@ -237,7 +237,7 @@ def test_reconstruct_hand_command_from_annotate(small_hand_take, tmp_path):
     """The pipeline's path: annotate the take (simulated detector), then train on its joint angles."""
     from click.testing import CliRunner
 
-    from dataset_tools.dataset import read_dataset
+    from manus_core.dataset import read_dataset
     from manus_capture.cli import cli
     from manus_capture.splat.checkpoint import load_checkpoint
 

@@ -122,7 +122,7 @@ def test_reconstruct_command_trains_and_renders(tmp_path, known_scene):
     import cv2
     from click.testing import CliRunner
 
-    from dataset_tools.cameras import CameraRig
+    from manus_core.cameras import CameraRig
     from manus_capture.cli import cli
 
     v = known_scene

@@ -22,7 +22,7 @@ from click.testing import CliRunner
 
 from dataset_tools.sync import (analyze_sync, build_report, check_sequence, fit_clock, frame_groups,
                                 led_flashes, spread_floor_ns, sync_take)
-from dataset_tools.take import Take, TakeError
+from manus_core.take import Take, TakeError
 from manus_capture.cli import cli
 from rig.layouts import make_rig
 from rig.sim.cube import HARDWARE_TRIGGER_LATENCY_NS, SimulatedCube

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dataset_tools.calibration.formats import load_cameras
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 from dataset_tools.triangulation import TriangulationError, triangulate, triangulate_frames, undistort_points
 
 

@@ -25,7 +25,7 @@ from rig.cameras.v4l2 import (
     jpeg_trim,
     list_v4l2_cameras,
 )
-from rig.config import CameraConfig
+from manus_core.rig_config import CameraConfig
 
 W, H, FPS = 64, 48, 120.0
 

@@ -25,22 +25,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from manus_core.errors import BoardError, CalibrationError
 
 BOARD_TYPES = ("chessboard", "charuco", "apriltag-grid")
 _KEYS = {"type", "cols", "rows", "square", "marker", "dictionary", "inverted"}
 # tags.json names families the way the AprilTag library does; OpenCV names them as dictionaries.
 TAG_FAMILIES = {"tag36h11": "DICT_APRILTAG_36h11", "tag25h9": "DICT_APRILTAG_25h9",
                 "tag36h10": "DICT_APRILTAG_36h10", "tag16h5": "DICT_APRILTAG_16h5"}
-
-
-class CalibrationError(ValueError):
-    """Input the calibration cannot use; the message names the cameras (or the file and key)."""
-
-    exit_code = 2
-
-
-class BoardError(CalibrationError):
-    """A board or tag layout file that cannot be used; the message names the file and the key."""
 
 
 def dictionary_names() -> list[str]:

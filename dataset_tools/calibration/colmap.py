@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 from .boards import CalibrationError, TagLayout
 from .detect import Detection
 

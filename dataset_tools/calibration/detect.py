@@ -28,15 +28,12 @@ from typing import Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from .boards import Board, CalibrationError, get_dictionary
+from manus_core.errors import DetectionError
 
 _SUBPIX_CRITERIA = (3, 50, 1e-3)  # cv2.TERM_CRITERIA_EPS | COUNT, 50 iterations, 1e-3 px
 _SUBPIX_FRACTION = 0.3            # half-window as a fraction of the local corner spacing
 VIDEO_SUFFIXES = {".mkv", ".mp4", ".avi", ".mov", ".webm"}
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
-
-
-class DetectionError(CalibrationError):
-    """Input images that cannot be used (unreadable, mixed sizes, no target found)."""
 
 
 @dataclass(frozen=True)
@@ -306,7 +303,7 @@ class FrameSource:
     def count(self) -> int:
         """Number of frames the source holds."""
         if self.camera is not None:
-            from ..take import Take
+            from manus_core.take import Take
 
             return Take(self.paths[0]).frame_count(self.camera)
         if self.is_video:
@@ -336,7 +333,7 @@ def read_frames(source: FrameSource) -> Iterator[tuple[int, np.ndarray]]:
 
     if source.camera is not None:
         # a take: JPEG packets are skipped undecoded, only the wanted frames are decoded
-        from ..take import Take
+        from manus_core.take import Take
 
         wanted = None if source.frames is None else set(source.frames)
         last = None if wanted is None else max(wanted, default=-1)

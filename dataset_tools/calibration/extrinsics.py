@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 from .boards import Board, CalibrationError, TagLayout
 from .detect import Detection
 from .intrinsics import Intrinsics, IntrinsicsError, calibrate_intrinsics

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 
 RATIO = 0.75           # Lowe's ratio test
 MIN_PAIR_MATCHES = 15  # fewer verified matches with one camera: that camera does not share the view

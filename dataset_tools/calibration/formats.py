@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import CalibrationFileError, CameraRig
-from ..fileio import write_atomic
+from manus_core.cameras import CalibrationFileError, CameraRig
+from manus_core.fileio import write_atomic
 
 WRITABLE = ("json", "colmap", "opencv-yaml", "easymocap", "manus")
 READABLE = WRITABLE + ("anipose", "caliscope", "panoptic")

@@ -13,17 +13,10 @@ import numpy as np
 
 from .boards import Board, CalibrationError
 from .detect import Detection
+from manus_core.errors import IntrinsicsError
 
 MIN_POINTS_PER_VIEW = 6
 MIN_VIEWS = 4
-
-
-class IntrinsicsError(CalibrationError):
-    """Too little or unusable data for an intrinsic calibration; names the camera."""
-
-    def __init__(self, camera: str, reason: str) -> None:
-        super().__init__(f"camera {camera}: {reason}")
-        self.camera, self.reason = camera, reason
 
 
 @dataclass(frozen=True)

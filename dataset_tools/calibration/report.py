@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import write_atomic
-from ..cameras import CameraRig
+from manus_core.fileio import write_atomic
+from manus_core.cameras import CameraRig
 from .extrinsics import RigCalibration, rotation_angle_deg
 
 

@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 from .boards import Board, BoardError, CalibrationError, TagLayout, load_board, load_tags
 from .detect import Detection, FrameSource, TagDetector, detect_cameras, diagnose_board, read_frames, subsample
 from .extrinsics import RigCalibration, calibrate_board_rig, calibrate_tag_rig, evaluate_tag_rig, require_all
@@ -175,7 +175,7 @@ def _identity(i: int) -> int:
 def _take_sources(path: Path) -> tuple[dict[str, FrameSource], dict[str, Callable[[int], int]]]:
     """A take's videos; frames of different cameras are grouped on the nominal tick of their host
     timestamp (the sync stage does this properly; calibration needs only the grouping)."""
-    from ..take import Take
+    from manus_core.take import Take
 
     take = Take(path)
     sources, sync = {}, {}

@@ -32,17 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import write_atomic
-from .skeleton import BONES, DEFAULT_BONE_LENGTHS, JOINT_NAMES, HandSkeleton
+from manus_core.fileio import write_atomic
+from manus_core.skeleton import BONES, DEFAULT_BONE_LENGTHS, JOINT_NAMES, HandSkeleton
+from manus_core.errors import BoneLengthError
 
 BONE_NAMES = tuple(f"{JOINT_NAMES[a]}-{JOINT_NAMES[b]}" for a, b in BONES)
 SUBJECT_FORMAT_VERSION = 1
-
-
-class BoneLengthError(ValueError):
-    """Bone lengths that cannot be estimated or a subject file that cannot be read."""
-
-    exit_code = 2
 
 
 @dataclass

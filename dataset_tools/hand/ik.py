@@ -40,7 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from .skeleton import FINGERTIPS, META_DIRS, N_DOF, REST_FRAMES, HandSkeleton, rodrigues
+from manus_core.skeleton import FINGERTIPS, META_DIRS, N_DOF, REST_FRAMES, HandSkeleton, rodrigues
+from manus_core.errors import IKError
 
 # Joints that move rigidly with the palm: wrist, thumb CMC, index..pinky MCP.
 PALM_JOINTS = np.array([0, 1, 5, 9, 13, 17])
@@ -51,12 +52,6 @@ _FINGER_DOFS = 6 + 4 * np.arange(5)[:, None] + np.arange(4)[None, :]
 # (m = 1..3 after the base): DOF k moves joint m when m >= _FIRST_MOVED[k].
 _FIRST_MOVED = np.array([1, 1, 2, 3])
 _OBSERVES = (np.arange(1, 4)[:, None] >= _FIRST_MOVED[None, :])  # (3 joints, 4 dofs)
-
-
-class IKError(ValueError):
-    """Inputs that cannot be fitted as given (shapes, weights, initial angles)."""
-
-    exit_code = 2
 
 
 @dataclass

@@ -17,7 +17,7 @@ import warnings
 import cv2
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 
 WRIST, INDEX_MCP, MIDDLE_MCP, RING_MCP = 0, 5, 9, 13
 # The joints MediaPipe re-crops from (wrist, thumb base, the knuckles and the first phalanges):

@@ -30,6 +30,7 @@ import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
+from manus_core.errors import InstallError, ModelError, ModelNotInstalledError
 
 INSTALL_HINT = "manus-capture models install {name}"
 
@@ -44,22 +45,6 @@ TOOL_REQUIREMENTS = ("tflite2onnx==0.4.1", "tflite==2.18.0", "onnx==1.23.2", "ai
 # agree to ~1e-4 px in practice).
 CHECK_RTOL = 1e-3
 CHECK_ATOL = 1e-3
-
-
-class ModelError(ValueError):
-    """A model that is missing, corrupt or does not fit; names the file and the problem."""
-
-    exit_code = 2
-
-
-class ModelNotInstalledError(ModelError):
-    """A model that is not in the cache: the message names the install command."""
-
-
-class InstallError(RuntimeError):
-    """`models install` could not finish (no network, a failed conversion or check)."""
-
-    exit_code = 2
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import write_atomic
-from ..take import Take, TakeError
+from manus_core.fileio import write_atomic
+from manus_core.take import Take, TakeError
 from .detector import Detector
 from .install import ModelError
 from .models import JOINT_NAMES, NUM_JOINTS

@@ -13,12 +13,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-
-class SegmentationError(ValueError):
-    """Input that segmentation cannot work with; the message names the input and the problem."""
-
-    exit_code = 2
+from manus_core.errors import SegmentationError
 
 
 # The MAD of a few JPEG frames underestimates the noise of a new frame: a floor in grey levels.

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 from .background import SegmentationError, fill_holes
 
 

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 from .background import SegmentationError, remove_small
 from .colour import PaintKey, chromaticity
 from .edges import refine_edges

@@ -9,8 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..cameras import CameraRig
-from ..take import Take
+from manus_core.cameras import CameraRig
+from manus_core.take import Take
 from .background import BackgroundModel, SegmentationError
 from .colour import PaintKey
 from .paint import paint_masks
@@ -166,7 +166,7 @@ def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
     """Add masks/hand, masks/object, masks/frame_ns (and paint/masks) to take `key` of
     DATASET.h5, atomically (dataset.add_arrays). The masks' own frame groups are stored: with
     --every they are a subset of the annotation's."""
-    from ..dataset import add_arrays
+    from manus_core.dataset import add_arrays
 
     arrays = {"masks/hand": result["hand"], "masks/object": result["object"], "masks/frame_ns": result["frame_ns"]}
     if result["paint"] is not None:
@@ -196,7 +196,7 @@ def write_overlays(folder: Path, take: Take, result: dict, t: int | None = None)
         target = folder / f"{cam}.png"
         ok, buf = cv2.imencode(".png", shown.astype(np.uint8))
         if ok:
-            from ..fileio import write_atomic
+            from manus_core.fileio import write_atomic
             write_atomic(target, buf.tobytes())
             out.append(target)
     return out

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from ..cameras import CameraRig
+from manus_core.cameras import CameraRig
 from .background import BackgroundModel, SegmentationError, remove_small
 from .colour import ColourModel, PaintKey
 from .edges import refine_edges

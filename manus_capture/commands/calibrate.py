@@ -36,7 +36,7 @@ def intrinsics(inputs, board_file: Path, output: Path, camera_id, frames: int, m
     from dataset_tools.calibration.detect import detect_source, diagnose_board, expand_inputs, read_frames, subsample
     from dataset_tools.calibration.formats import save_cameras
     from dataset_tools.calibration.intrinsics import calibrate_intrinsics
-    from dataset_tools.cameras import CameraRig
+    from manus_core.cameras import CameraRig
 
     if output.exists() and not force:
         raise click.UsageError(f"{output} exists; use --force to overwrite it")

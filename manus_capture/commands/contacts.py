@@ -33,8 +33,8 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     import numpy as np
     import torch
 
-    from dataset_tools.dataset import read_dataset
-    from dataset_tools.fileio import write_atomic
+    from manus_core.dataset import read_dataset
+    from manus_core.fileio import write_atomic
     from manus_capture.contacts import contact_image, model_contacts, write_contacts
     from manus_capture.evaluate import EvaluateError, render_contacts
     from manus_capture.splat.checkpoint import load_checkpoint

@@ -7,10 +7,7 @@ import time
 from pathlib import Path
 
 import click
-
-
-class OutputExists(FileExistsError):
-    exit_code = 2
+from manus_core.errors import OutputExists
 
 
 @click.command("detect", context_settings={"help_option_names": ["-h", "--help"]})
@@ -42,7 +39,7 @@ def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str |
     from dataset_tools.keypoints import hand_keypoint_detector
     from dataset_tools.keypoints.keypoints2d import (TakeKeypoints, detect_take, load_boxes,
                                                      write_keypoints_h5)
-    from dataset_tools.take import Take
+    from manus_core.take import Take
 
     from .. import __version__
 

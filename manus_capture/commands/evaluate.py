@@ -58,8 +58,8 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
     import h5py
 
     from dataset_tools.calibration.formats import load_cameras
-    from dataset_tools.dataset import read_dataset
-    from dataset_tools.fileio import write_atomic
+    from manus_core.dataset import read_dataset
+    from manus_core.fileio import write_atomic
     from manus_capture.contacts import model_contacts
     from manus_capture.evaluate import EvaluateError, canonical_pose, pick_views, score_contacts, spread_cameras
     from manus_capture.splat.checkpoint import load_checkpoint

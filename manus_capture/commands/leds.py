@@ -5,18 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from manus_core.errors import NoLedsError
 
 rig_option = click.option("--rig", "rig_file", required=True,
                           type=click.Path(dir_okay=False, path_type=Path),
                           help="rig.toml whose [leds] table names the controller.")
 
 
-class NoLedsError(ValueError):
-    exit_code = 2
-
-
 def _open(rig_file: Path):
-    from rig.config import load_rig
+    from manus_core.rig_config import load_rig
     from rig.leds import open_led_controller
 
     rig = load_rig(rig_file)

@@ -79,9 +79,10 @@ def command(rig_file: Path, session_dir: Path, obj: str, paint: bool, repeats: i
     the simulated object and paint. Exit code 0: every take complete; 1: a take failed or lost a
     camera; 130: stopped by a signal.
     """
-    from rig.config import load_rig
+    from manus_core.rig_config import load_rig
     from rig.recorder import StopFlag, record_take
-    from rig.session import open_session, with_sim_subject
+    from manus_core.session import open_session
+    from rig.sim.subject import with_sim_subject
 
     from .record import stop_on_signals, summarize
 

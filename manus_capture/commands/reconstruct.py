@@ -19,14 +19,9 @@ from pathlib import Path
 
 import click
 import numpy as np
+from manus_core.errors import ReconstructInputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-
-
-class ReconstructInputError(ValueError):
-    """Bad input to reconstruct: names the file and the problem (exit code 2)."""
-
-    exit_code = 2
 
 
 def _colour(text: str) -> tuple[float, float, float]:
@@ -300,8 +295,8 @@ def render_command(checkpoint: Path, cameras_path: Path, scale: float, backgroun
     from tqdm import tqdm
 
     from dataset_tools.calibration.formats import load_cameras
-    from dataset_tools.cameras import scale_intrinsics
-    from dataset_tools.fileio import write_atomic
+    from manus_core.cameras import scale_intrinsics
+    from manus_core.fileio import write_atomic
     from manus_capture.splat.checkpoint import load_checkpoint
     from manus_capture.splat.hand import HandGaussians
     from manus_capture.splat.rasterize import EPS2D

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from rig.session import TAKE_KINDS as KINDS
+from manus_core.session import TAKE_KINDS as KINDS
 
 
 @contextlib.contextmanager
@@ -82,9 +82,9 @@ def command(rig_file: Path, session_dir: Path, take: str, kind: str, duration: f
     Exit code 0: complete; 1: a camera was lost or the take failed; 2: bad input or not enough
     disk; 130: stopped by a signal.
     """
-    from rig.config import load_rig
+    from manus_core.rig_config import load_rig
     from rig.recorder import StopFlag, record_take
-    from rig.session import with_sim_subject
+    from rig.sim.subject import with_sim_subject
 
     rig = load_rig(rig_file)
     if all(c.backend == "sim" for c in rig.cameras):   # the simulated cube shows who and what

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from rig.config import load_rig, rig_to_toml
+from manus_core.rig_config import load_rig, rig_to_toml
 from rig.layouts import LAYOUTS, make_rig
 
 
@@ -42,7 +42,7 @@ def command() -> None:
 @click.option("--force", is_flag=True, help="Overwrite an existing file.")
 def init(layout, cameras, resolution, fps, backend, sync, seed, output: Path, force: bool) -> None:
     """Write a rig.toml for a layout, with every camera and every simulated imperfection spelled out."""
-    from dataset_tools.fileio import write_atomic
+    from manus_core.fileio import write_atomic
 
     if output.exists() and not force:
         raise click.UsageError(f"{output} exists; use --force to overwrite it")

@@ -36,7 +36,7 @@ def command(take: Path, calib: Path, background: Path | None, masks: Path | None
     from dataset_tools.calibration.formats import load_cameras
     from dataset_tools.segmentation.background import SegmentationError
     from dataset_tools.segmentation.takes import check_output, segment_take, write_masks, write_overlays
-    from dataset_tools.take import Take
+    from manus_core.take import Take
 
     start = time.perf_counter()
     colour = None
@@ -75,7 +75,7 @@ def _paint_on_surface(output: Path, key: str, rig, result: dict) -> str:
     import h5py
     import numpy as np
 
-    from dataset_tools.dataset import add_arrays
+    from manus_core.dataset import add_arrays
     from manus_capture.paint_contact import paint_on_surface
 
     with h5py.File(output, "r") as f:

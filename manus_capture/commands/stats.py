@@ -9,18 +9,15 @@ from pathlib import Path
 
 import click
 import numpy as np
+from manus_core.errors import OutputExists
 
 THUMB_TIP = 4
 OTHER_TIPS = {"index": 8, "middle": 12, "ring": 16, "pinky": 20}
 
 
-class OutputExists(FileExistsError):
-    exit_code = 2
-
-
 def take_stats(ann) -> dict:
     """Summary numbers of one TakeAnnotation (NaN-aware; frames without a hand are not averaged)."""
-    from dataset_tools.dataset import FLAGS
+    from manus_core.dataset import FLAGS
 
     views = ann.keypoints3d_views.astype(np.float64)
     found = np.isfinite(ann.keypoints3d).all(-1)
@@ -58,7 +55,7 @@ def plot_apertures(anns: list, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from dataset_tools.fileio import write_atomic
+    from manus_core.fileio import write_atomic
 
     fig, axes = plt.subplots(len(anns), 1, figsize=(8, 2.6 * len(anns)), squeeze=False, sharex=False)
     for ax, ann in zip(axes[:, 0], anns):
@@ -95,8 +92,8 @@ def command(dataset: Path, selected: tuple[str, ...], plot: Path | None, json_pa
     residual, frame flags, and a plot of the grip aperture (thumb tip to each fingertip) over time."""
     from tqdm import tqdm
 
-    from dataset_tools.dataset import read_dataset
-    from dataset_tools.fileio import write_atomic
+    from manus_core.dataset import read_dataset
+    from manus_core.fileio import write_atomic
 
     ds = read_dataset(dataset)
     keys = list(selected) or ds.takes

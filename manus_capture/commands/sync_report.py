@@ -28,7 +28,7 @@ def command(take: Path, force: bool, tolerance_ms: float, max_drop_pct: float, o
     from tqdm import tqdm
 
     from dataset_tools.sync import SyncSettings, refuse_overwrite, sync_take, take_flashes
-    from dataset_tools.take import Take
+    from manus_core.take import Take
 
     tk = Take(take)
     refuse_overwrite(tk.path, force)

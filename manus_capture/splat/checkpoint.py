@@ -24,18 +24,13 @@ from pathlib import Path
 
 import torch
 
-from dataset_tools.fileio import write_atomic
+from manus_core.fileio import write_atomic
 
 from .gaussians import PARAM_NAMES, Gaussians
+from manus_core.errors import CheckpointError
 
 FORMAT = "manus-capture-splat"
 VERSION = "1"
-
-
-class CheckpointError(ValueError):
-    """A file that is not a readable manus-capture splat checkpoint."""
-
-    exit_code = 2
 
 
 def save_checkpoint(path: str | os.PathLike, gaussians: Gaussians, kind: str = "object",

@@ -1,6 +1,6 @@
 """MANUS-Hand: articulated 3D Gaussians of a hand, posed by the 26-DOF skeleton.
 
-The model lives in the canonical (rest) frame of dataset_tools.hand.skeleton:
+The model lives in the canonical (rest) frame of manus_core.skeleton:
 
 - canonical Gaussians, initialized around every bone: a normal distribution centred at the
   bone's midpoint, spread by the bone's length (`spread` times the length along the bone, at
@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from dataset_tools.hand.skeleton import BONES, HandSkeleton
+from manus_core.skeleton import BONES, HandSkeleton
 
 from .gaussians import Gaussians
 from .losses import LossWeights, load_lpips

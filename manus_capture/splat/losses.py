@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from manus_core.errors import LPIPSWeightsError
 
 
 @dataclass(frozen=True)
@@ -193,7 +194,4 @@ def load_lpips(weights: str | Path | None, net: str = "alex") -> LPIPS | None:
                                 f"unexpected {unexpected[:3]})")
     return model.requires_grad_(False)
 
-
-class LPIPSWeightsError(ValueError):
-    exit_code = 2
 

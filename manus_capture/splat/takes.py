@@ -1,6 +1,6 @@
 """Training views from recorded takes: what `reconstruct object|hand` and the demo feed the trainers.
 
-A take stores distorted MJPEG frames per camera (dataset_tools.take.Take). The views the
+A take stores distorted MJPEG frames per camera (manus_core.take.Take). The views the
 trainers want are undistorted float images with pinhole intrinsics, optionally reduced
 (`scale`). For training they are best cut to windows around the subject (`crop_views`): the
 object covers a few percent of a cube camera's image, and every pixel outside the window would
@@ -30,20 +30,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dataset_tools.cameras import CameraRig, scale_intrinsics
-from dataset_tools.take import Take
+from manus_core.cameras import CameraRig, scale_intrinsics
+from manus_core.take import Take
 
 from .trainer import Views
+from manus_core.errors import TakeInputError
 
 OBJECT_LABELS = (2,)
 HAND_LABELS = (1, 3)
 JOINTS_ON_MASK = 0.9
-
-
-class TakeInputError(ValueError):
-    """A take, ground truth or dataset that cannot give training views; names the file (exit code 2)."""
-
-    exit_code = 2
 
 
 # --- ground truth of simulated takes -----------------------------------------------------------
@@ -303,7 +298,7 @@ def hand_frames_from_dataset(dataset_path: str | os.PathLike, take_key: str | No
 
     take_key "SESSION/TAKE"; None when the dataset holds one take only.
     """
-    from dataset_tools.dataset import read_dataset
+    from manus_core.dataset import read_dataset
 
     ds = read_dataset(dataset_path)
     if take_key is None:
@@ -323,7 +318,7 @@ def hand_masks_from_dataset(dataset_path: str | os.PathLike, take_key: str | Non
     `rows` of that take (matched on frame_ns) and `cameras` in that order."""
     import h5py
 
-    from dataset_tools.dataset import read_dataset
+    from manus_core.dataset import read_dataset
 
     ds = read_dataset(dataset_path)
     key = take_key or (ds.takes[0] if len(ds) == 1 else None)
@@ -392,7 +387,7 @@ def hand_views_from_take(take_path: str | os.PathLike, rig: CameraRig, hand: Han
     views[i] belongs to frames[i] always: a pose no camera sees well gets an empty Views, which
     train_hand and evaluate_hand pass over.
     """
-    from dataset_tools.hand.skeleton import HandSkeleton
+    from manus_core.skeleton import HandSkeleton
 
     take = _open(take_path, rig)
     frames = [int(f) for f in frames]

@@ -9,16 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
-
-
-class CameraError(RuntimeError):
-    """A camera that cannot be opened, configured or read; names the camera."""
-
-    exit_code = 1
-
-
-class CameraDisconnected(CameraError):
-    """The camera went away mid-stream; frames already read stay valid."""
+from manus_core.errors import CameraDisconnected, CameraError
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from rig.config import CameraConfig
+from manus_core.rig_config import CameraConfig
 from rig.discovery import FoundCamera
 
 from . import CameraDisconnected, CameraError, CameraInfo, Frame

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from rig.config import CameraConfig
+from manus_core.rig_config import CameraConfig
 from rig.discovery import FoundCamera
 
 from . import CameraDisconnected, CameraError, CameraInfo, Frame

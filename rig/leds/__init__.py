@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rig.config import LedConfig
+from manus_core.rig_config import LedConfig
 
 from .ascii import AsciiLedController
 from .base import (

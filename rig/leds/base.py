@@ -13,39 +13,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import serial
+from manus_core.errors import LedDisconnected, LedError, LedRejected, LedTimeout, LedValueError, LinkLost
 
 
 def now_ns() -> int:
     """Host time of the log: CLOCK_MONOTONIC in ns, the clock of every other timestamp of a take."""
     return time.clock_gettime_ns(time.CLOCK_MONOTONIC)
-
-
-class LedError(RuntimeError):
-    """The LED controller failed (no answer, gone, or refused a command); names the port."""
-
-    exit_code = 1
-
-
-class LedTimeout(LedError):
-    """The controller did not answer a command within its retries."""
-
-
-class LedDisconnected(LedError):
-    """The port went away and did not come back within the reconnect budget."""
-
-
-class LedRejected(LedError):
-    """The controller answered ERR."""
-
-
-class LedValueError(ValueError):
-    """A level, panel or duration out of range (bad input, exit code 2)."""
-
-    exit_code = 2
-
-
-class LinkLost(OSError):
-    """Internal: the serial port failed mid-exchange; the controller reconnects."""
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import SimCameraConfig
+from manus_core.rig_config import SimCameraConfig
 
 _BLOCK = 4096  # frames per noise block: noise of frame k depends only on (seed, camera, stream, k)
 _STREAMS = {"ts_jitter": 1, "trigger": 2, "latency": 3, "drop": 4}

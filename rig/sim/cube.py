@@ -15,11 +15,11 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 
 from ..cameras import CameraError, CameraInfo, Frame
 from ..clock import VirtualClock
-from ..config import CameraConfig, RigConfig
+from manus_core.rig_config import CameraConfig, RigConfig
 from .clocks import CameraClock
 from .render import Rendered, Renderer
 from .world import World

@@ -8,7 +8,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from dataset_tools.fileio import atomic_output
+from manus_core.fileio import atomic_output
 
 GZIP = {"compression": "gzip", "compression_opts": 4}
 

@@ -14,11 +14,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dataset_tools.hand.skeleton import DEFAULT_BONE_LENGTHS, FINGERS, REST_FRAMES, HandSkeleton
+from manus_core.skeleton import DEFAULT_BONE_LENGTHS, FINGERS, REST_FRAMES, HandSkeleton
 from rig.sim import shapes
 from rig.sim.objects import PAINT_RGB
 
-# Built-in subjects: bone lengths (20,) in the order of dataset_tools.hand.skeleton.
+# Built-in subjects: bone lengths (20,) in the order of manus_core.skeleton.
 _PALM = np.array([1, 0, 0, 0] * 5, dtype=float)        # metacarpal segments
 _THUMB = np.array([0, 1, 1, 1] + [0] * 16, dtype=float)  # moving thumb segments
 _FINGER = 1.0 - _PALM - _THUMB                            # moving finger segments

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from dataset_tools.cameras import CameraRig
+from manus_core.cameras import CameraRig
 
 from . import shapes
 from .world import MIP_LEVELS, World

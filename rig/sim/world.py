@@ -143,7 +143,7 @@ class World:
                 "tags": {str(i): c.round(9).tolist() for i, c in self.tags.items()}}
 
     def write_tags(self, path) -> None:
-        from dataset_tools.fileio import write_atomic
+        from manus_core.fileio import write_atomic
         write_atomic(path, json.dumps(self.tags_json(), indent=1).encode())
 
     @cached_property

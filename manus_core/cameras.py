@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .fileio import write_atomic
+from manus_core.fileio import write_atomic
+from manus_core.errors import CalibrationFileError
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -152,7 +153,3 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float | None = None) -> np.nd
     return K
 
 
-class CalibrationFileError(ValueError):
-    """A calibration file that cannot be read; names the file and the problem."""
-
-    exit_code = 2

@@ -13,15 +13,10 @@ import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
+from manus_core.errors import ConfigError
 
 BACKENDS = ("sim", "v4l2", "aravis")
 SYNC_MODES = ("free-run", "software-trigger", "hardware-trigger")
-
-
-class ConfigError(ValueError):
-    """A configuration problem, worded as 'FILE: KEY: what is wrong'."""
-
-    exit_code = 2
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .fileio import atomic_output, write_atomic
-from .hand.skeleton import DOF_NAMES, JOINT_NAMES, HandSkeleton
+from manus_core.fileio import atomic_output, write_atomic
+from manus_core.skeleton import DOF_NAMES, JOINT_NAMES, HandSkeleton
+from manus_core.errors import DatasetError
 
 FORMAT = "manus-capture dataset"
 VERSION = 1
@@ -56,12 +57,6 @@ _ARRAYS = {  # name: (dtype, compress in frame chunks)
     "ik_residual_m": (np.float32, True), "flags": (np.uint8, True),
 }
 _JSON_ATTRS = ("skeleton", "filter", "flags")
-
-
-class DatasetError(ValueError):
-    """A dataset file that cannot be read or written as asked; names the file."""
-
-    exit_code = 2
 
 
 def software_version() -> str:

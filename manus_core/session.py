@@ -20,20 +20,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from dataset_tools.fileio import write_atomic
+from manus_core.fileio import write_atomic
 
-from .config import ConfigError, RigConfig, _toml_value, rig_from_dict, rig_to_toml
+from manus_core.rig_config import ConfigError, RigConfig, _toml_value, rig_from_dict, rig_to_toml
+from manus_core.errors import SessionError
 
 SESSION_FILE = "session.toml"
 TAKE_KINDS = ("calibration", "hand", "object", "grasp", "canonical")
 RIG_TABLES = ("rig", "cameras", "leds", "storage", "sim")
 TAKE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
-
-
-class SessionError(ValueError):
-    """A session folder or session.toml that does not fit the request; names the file."""
-
-    exit_code = 2
 
 
 def utc_now() -> str:
@@ -50,26 +45,6 @@ def check_kind(kind: str) -> str:
     if kind not in TAKE_KINDS:
         raise SessionError(f"take kind {kind!r} is not one of {', '.join(TAKE_KINDS)}")
     return kind
-
-
-def with_sim_subject(rig: RigConfig, *, obj: str | None = None, paint: bool | None = None,
-                     subject: str | None = None) -> RigConfig:
-    """The rig with its simulated world's object, paint and subject replaced where given."""
-    if rig.sim is None:
-        return rig
-    changes = {k: v for k, v in (("object", obj), ("paint", paint), ("subject", subject)) if v is not None}
-    if not changes:
-        return rig
-    known = ("box", "mug", "sphere")
-    if "object" in changes and changes["object"] not in known:
-        raise SessionError(f"{rig.source}: the simulated cube has no object {changes['object']!r} "
-                           f"(known: {', '.join(known)})")
-    if "subject" in changes:
-        from .sim.hand import SUBJECTS
-        if changes["subject"] not in SUBJECTS:
-            raise SessionError(f"{rig.source}: the simulated cube has no subject {changes['subject']!r} "
-                               f"(known: {', '.join(SUBJECTS)})")
-    return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, **changes))
 
 
 @dataclass

@@ -18,15 +18,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from manus_core.errors import TakeError
 
 FRAME_COLUMNS = ("cam", "seq", "t_device_ns", "t_host_ns", "bytes", "flags")
 INT_COLUMNS = ("seq", "t_device_ns", "t_host_ns", "bytes")
-
-
-class TakeError(ValueError):
-    """A take folder or one of its files that cannot be read; names the file and the problem."""
-
-    exit_code = 2
 
 
 class Take:

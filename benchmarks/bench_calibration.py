@@ -43,10 +43,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from dataset_tools.calibration.board_rig import calibrate_board_rig  # noqa: E402
 from dataset_tools.calibration.boards import board_from_dict  # noqa: E402
+from dataset_tools.calibration.detect import detect_cameras  # noqa: E402
+from dataset_tools.calibration.frames import FrameSource  # noqa: E402
 from dataset_tools.calibration.report import triangulation_check  # noqa: E402
 from dataset_tools.calibration.rig import calibrate_rig  # noqa: E402
 from manus_core.cameras import CameraRig  # noqa: E402
+from manus_core.rotations import rotation_angle_deg  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "caliscope_4cam_charuco"
 VIDEOS = DATA / "calibration" / "extrinsic"
@@ -145,11 +149,9 @@ def run_anipose_rows(detections):
 
 def simulated_cube(width: int, height: int, seconds: float = 0.05) -> None:
     """Record a calibration take of the 53-camera cube, calibrate it, score it against the truth."""
-    import h5py
-
-    from dataset_tools.calibration.extrinsics import rotation_angle_deg
+    from manus_core.ground_truth import GroundTruth
     from rig.layouts import make_rig
-    from rig.recorder import record_take
+    from rig.record import record_take
 
     config = make_rig(resolution=(width, height), seed=1)
     # one ray per pixel: the walls are mip-mapped, so the tags come out as sharp, at a quarter of the time
@@ -157,12 +159,11 @@ def simulated_cube(width: int, height: int, seconds: float = 0.05) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         session = Path(tmp) / "session"
         t = time.perf_counter()
-        record_take(config, session, "calib", "calibration", seconds, progress=False)
+        record_take(config, session, "calib", "calibration", seconds)
         recorded = time.perf_counter() - t
-        with h5py.File(session / "calib" / "ground_truth.h5") as f:
-            ids = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in f["cameras/ids"][()])
-            truth = CameraRig(ids, f["cameras/K"][()], f["cameras/dist"][()], f["cameras/R"][()], f["cameras/t"][()],
-                              [[width, height]] * len(ids))
+        cams = GroundTruth.of_take(session / "calib").cameras
+        ids = cams.ids
+        truth = CameraRig(ids, cams.K, cams.dist, cams.R, cams.t, [[width, height]] * len(ids))
         t = time.perf_counter()
         result = calibrate_rig(take=session / "calib", tags=session / "tags.json", intrinsics=truth, method="tags")
         wall = time.perf_counter() - t
@@ -197,9 +198,6 @@ def main() -> None:
     t = time.perf_counter()
     ours = calibrate_rig({c: VIDEOS / f"cam_{c}.mp4" for c in IDS}, board=BOARD)
     rows.append(("manus-capture", ours.rig.subset(IDS), time.perf_counter() - t))
-    from dataset_tools.calibration.detect import FrameSource, detect_cameras
-    from dataset_tools.calibration.extrinsics import calibrate_board_rig
-
     detections, sizes = detect_cameras({c: FrameSource((str(VIDEOS / f"cam_{c}.mp4"),)) for c in IDS}, BOARD)
     t = time.perf_counter()
     alone = calibrate_board_rig(detections, sizes, BOARD)

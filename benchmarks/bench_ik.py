@@ -39,9 +39,9 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from dataset_tools.hand.ik import fit_hand  # noqa: E402
-from manus_core.skeleton import FINGERTIPS, HandSkeleton, rodrigues  # noqa: E402
 from dataset_tools.simulated_detector import SimulatedDetector  # noqa: E402
 from dataset_tools.triangulation import triangulate_frames  # noqa: E402
+from manus_core.skeleton import FINGERTIPS, HandSkeleton, rodrigues  # noqa: E402
 from rig.layouts import make_rig  # noqa: E402
 from rig.sim.cube import true_cameras  # noqa: E402
 from rig.sim.hand import make_hand  # noqa: E402

@@ -23,10 +23,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from rig.cameras import CameraInfo, Frame
+from rig.cameras import CameraInfo, Frame, TakeCameras
 from rig.clock import MonotonicClock
 from rig.layouts import make_rig
-from rig.recorder import Recorder
+from rig.record import Recorder
+from rig.sim.cube import SimulatedCube
 
 BUFFERS = 4          # frames a UVC camera keeps for the host (the driver's default queue)
 TARGET_FPS = 120.0
@@ -35,8 +36,6 @@ TARGET_CAMERAS = 53
 
 def sample_frames(n: int = 4) -> list[bytes]:
     """n 1280x720 JPEGs of the simulated cube (q90, sensor noise): ~165 KB each."""
-    from rig.sim.cube import SimulatedCube
-
     rig = make_rig("cube53", cameras=1, resolution=(1280, 720), seed=0)
     cam = SimulatedCube(rig, "calibration", 1.0).camera(rig.cameras[0].id)
     cam.open()
@@ -112,7 +111,7 @@ def record(frames: list[bytes], folder: Path, cameras: int, fps: float,
     cams = {c.id: PacedCamera(c.id, frames, fps) for c in configs}
     take = folder / f"take-{cameras}"
     t = time.perf_counter()
-    result = Recorder(rig, take, "calibration", seconds, cams, MonotonicClock(), progress=False).run()
+    result = Recorder(rig, take, "calibration", seconds, TakeCameras(cams), MonotonicClock()).run()
     wall = time.perf_counter() - t
     shutil.rmtree(take)
     lost = sum(c.seq_gaps + c.unwritten for c in result.cameras)

@@ -32,6 +32,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from PIL import Image
+
+from manus_capture.splat import rasterize
+from manus_capture.splat.rasterize import gsplat_available
+from manus_capture.splat.reference import render_reference
+from manus_capture.splat.strategy import DensifyStrategy
+from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, train_object
 
 REPO = Path(__file__).resolve().parents[1]
 STEP_SIZES = ((10_000, 256, 256), (100_000, 512, 512))
@@ -41,10 +48,6 @@ LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_subset"
 
 def load_lego(size: int):
     """Views of the lego subset at size x size on white, with masks where alpha > 0."""
-    from PIL import Image
-
-    from manus_capture.splat.trainer import Views
-
     meta = json.loads((LEGO / "transforms_train.json").read_text())
     images, alphas, viewmats = [], [], []
     for frame in meta["frames"]:
@@ -66,9 +69,6 @@ def load_lego(size: int):
 
 
 def bench_lego(size: int, iterations: int, points: int, sh_degree: int, device: str) -> dict:
-    from manus_capture.splat.strategy import DensifyStrategy
-    from manus_capture.splat.trainer import ObjectConfig, evaluate, train_object
-
     if not LEGO.is_dir():
         return {"skipped": f"no data at {LEGO}"}
     views = load_lego(size).to(device)
@@ -76,7 +76,7 @@ def bench_lego(size: int, iterations: int, points: int, sh_degree: int, device: 
     train = [i for i in range(len(views)) if i not in test]
     cfg = ObjectConfig(iterations=iterations, sh_degree=sh_degree, sh_increase_every=max(iterations // 4, 1),
                        init_points=points, background=(1.0, 1.0, 1.0),
-                       densify=DensifyStrategy(refine_start=iterations // 10, refine_stop=int(iterations * 0.7),
+                       densify=DensifyStrategy(refine_start_iter=iterations // 10, refine_stop_iter=int(iterations * 0.7),
                                                refine_every=100, reset_every=max(iterations // 3, 1000)))
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -112,8 +112,6 @@ def camera(width: int, device: str, height: int | None = None):
 
 def step_child(n: int, width: int, height: int, device: str, backend: str, repeats: int) -> None:
     """Run in a fresh process: time forward+backward and print JSON with the peak memory."""
-    from manus_capture.splat import rasterize
-
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     params = [p.requires_grad_() for p in random_gaussians(n, device)]
     V, K = camera(width, device, height)
@@ -140,8 +138,6 @@ def step_child(n: int, width: int, height: int, device: str, backend: str, repea
 
 
 def bench_step(device: str, repeats: int) -> list[dict]:
-    from manus_capture.splat.rasterize import gsplat_available
-
     rows = []
     backends = ["torch"] + (["gsplat"] if device == "cuda" and gsplat_available() else [])
     for n, width, height in STEP_SIZES + (GPU_STEP_SIZES if device == "cuda" else ()):
@@ -155,9 +151,6 @@ def bench_step(device: str, repeats: int) -> list[dict]:
 
 def bench_reference(device: str) -> dict:
     """The tile rasterizer against the dense reference on a scene the reference can afford."""
-    from manus_capture.splat import rasterize
-    from manus_capture.splat.reference import render_reference
-
     params = random_gaussians(300, "cpu", seed=1)
     V, K = camera(64, "cpu")
     t0 = time.perf_counter()
@@ -187,8 +180,6 @@ def main() -> None:
         return
     todo = args.only or ["reference", "step", "lego"]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device {args.device}")
-    from manus_capture.splat.rasterize import gsplat_available
-
     if not (args.device == "cuda" and gsplat_available()):
         print("gsplat: not compared (it needs CUDA and the gsplat package; this run has "
               f"device={args.device}, gsplat {'installed' if gsplat_available() else 'not installed'})")

@@ -29,8 +29,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from manus_core.cameras import CameraRig  # noqa: E402
 from dataset_tools.triangulation import triangulate, triangulate_frames  # noqa: E402
+from manus_core.cameras import CameraRig  # noqa: E402
 from rig.layouts import cube53  # noqa: E402
 
 

@@ -22,7 +22,9 @@ Every take records where its bones came from (attribute bone_source).
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import hashlib
+import multiprocessing
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -32,14 +34,30 @@ import numpy as np
 
 from manus_core.cameras import CameraRig
 from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version
-from .hand.bones import (BoneLengthError, BoneLengths, bone_lengths_from_samples, bone_samples,
-                         estimate_bone_lengths, load_subject, save_subject)
-from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
+from manus_core.errors import AnnotateError, BoneLengthError
+from manus_core.ground_truth import FILE_NAME as GROUND_TRUTH
+from manus_core.ground_truth import GroundTruth
+from manus_core.progress import Progress, silent
+from manus_core.session import load_session
 from manus_core.skeleton import HandSkeleton
-from .one_euro import one_euro
 from manus_core.take import Take
+
+from .calibration.formats import load_cameras
+from .hand.bones import (
+    BoneLengths,
+    bone_lengths_from_samples,
+    bone_samples,
+    estimate_bone_lengths,
+    load_subject,
+    save_subject,
+)
+from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
+from .keypoints import hand_keypoint_detector
+from .keypoints.keypoints2d import TakeKeypoints, detect_take, read_keypoints_h5, write_keypoints_h5
+from .one_euro import one_euro
+from .simulated_detector import SimulatedDetector, keypoints_for_take, true_rig
+from .sync import frame_groups
 from .triangulation import triangulate_frames
-from manus_core.errors import AnnotateError
 
 Groups = tuple[np.ndarray, np.ndarray]  # frame_ns (T,), frame_index (T,C)
 
@@ -128,42 +146,7 @@ def annotate_arrays(rig: CameraRig, keypoints2d: np.ndarray, frame_ns: np.ndarra
             "flags": flags, "bone_lengths": np.asarray(bone_lengths, np.float64), "fitted": fitted}
 
 
-# --- frame groups and keypoints of a take -----------------------------------------------------------
-
-def frame_groups_from_host_times(take: Take, fps: float | None = None) -> Groups:
-    """Frame groups by rounding host arrival times to the nominal tick (a fallback for takes that
-    have no sync result): the tick phase is the circular mean of all arrivals modulo the period,
-    so the rounding boundaries fall half a period away from where frames arrive. A camera with two
-    frames on one tick keeps the one nearer the tick. frame_ns is the tick time."""
-    fps = fps or take.fps
-    hosts = {cam: take.camera_frames(cam)["t_host_ns"] for cam in take.cameras}
-    every = np.concatenate([h for h in hosts.values()]) if hosts else np.zeros(0, np.int64)
-    if not len(every):
-        raise AnnotateError(f"{take.path / 'frames.csv'}: no frames")
-    if not fps:
-        steps = np.concatenate([np.diff(np.sort(h)) for h in hosts.values() if len(h) > 1] or [np.zeros(0)])
-        if not len(steps):
-            raise AnnotateError(f"{take.path / 'take.json'}: no fps and too few frames to measure it")
-        fps = 1e9 / float(np.median(steps))
-    period = 1e9 / fps
-    origin = int(every.min())
-    phase = 2 * np.pi * ((every - origin) % period) / period
-    center = np.angle(np.exp(1j * phase).mean()) / (2 * np.pi) * period
-    ticks, rows = [], []
-    for h in hosts.values():
-        rel = (h - origin) - center
-        k = np.rint(rel / period).astype(np.int64)
-        order = np.lexsort((np.abs(rel - k * period), k))
-        first = order[np.r_[True, np.diff(k[order]) != 0]] if len(order) else order
-        ticks.append(k[first])
-        rows.append(first)
-    all_ticks = np.unique(np.concatenate(ticks))
-    frame_index = np.full((len(all_ticks), len(hosts)), -1, np.int64)
-    for c, (k, r) in enumerate(zip(ticks, rows)):
-        frame_index[np.searchsorted(all_ticks, k), c] = r
-    frame_ns = np.rint(origin + center + all_ticks * period).astype(np.int64)
-    return frame_ns, frame_index
-
+# --- keypoints of a take's frame groups --------------------------------------------------------------
 
 def _gather(per_camera: Sequence[np.ndarray | None], frame_index: np.ndarray) -> np.ndarray:
     """(T,C,21,3) keypoints of each group from per-camera (F_c,21,3) arrays (None: camera absent)."""
@@ -179,8 +162,6 @@ def _gather(per_camera: Sequence[np.ndarray | None], frame_index: np.ndarray) ->
 
 
 def _keypoints_file(take: Take, frame_index: np.ndarray) -> tuple[np.ndarray, str]:
-    from .keypoints.keypoints2d import read_keypoints_h5
-
     path = take.path / "keypoints2d.h5"
     data = read_keypoints_h5(path)
     for cam in take.cameras:
@@ -192,9 +173,6 @@ def _keypoints_file(take: Take, frame_index: np.ndarray) -> tuple[np.ndarray, st
 
 
 def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
-    from .keypoints import hand_keypoint_detector
-    from .keypoints.keypoints2d import TakeKeypoints, detect_take, write_keypoints_h5
-
     detector = hand_keypoint_detector(options.model, device=options.device)
     result = detect_take(take, detector)
     write_keypoints_h5(take.path / "keypoints2d.h5", TakeKeypoints(
@@ -204,9 +182,7 @@ def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOpti
 
 
 def _keypoints_simulated(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
-    from .simulated_detector import SimulatedDetector, keypoints_for_take, read_ground_truth, true_rig
-
-    gt = read_ground_truth(take.path / "ground_truth.h5")
+    gt = GroundTruth.of_take(take.path)
     host = np.full(frame_index.shape, np.nan)
     for c, cam in enumerate(take.cameras):
         t_host = take.camera_frames(cam)["t_host_ns"]
@@ -227,14 +203,14 @@ def take_keypoints(take: Take, frame_index: np.ndarray,
     mode = options.keypoints
     if mode == "auto":
         mode = "file" if (take.path / "keypoints2d.h5").exists() else (
-            "simulated" if (take.path / "ground_truth.h5").exists() else "detect")
+            "simulated" if (take.path / GROUND_TRUTH).exists() else "detect")
     if mode == "file":
         if not (take.path / "keypoints2d.h5").exists():
             raise AnnotateError(f"{take.path / 'keypoints2d.h5'}: missing (run `manus-capture detect {take.path}`)")
         return _keypoints_file(take, frame_index)
     if mode == "simulated":
-        if not (take.path / "ground_truth.h5").exists():
-            raise AnnotateError(f"{take.path / 'ground_truth.h5'}: missing; the simulated detector needs the "
+        if not (take.path / GROUND_TRUTH).exists():
+            raise AnnotateError(f"{take.path / GROUND_TRUTH}: missing; the simulated detector needs the "
                                 f"ground truth of a simulated take")
         return _keypoints_simulated(take, frame_index, options)
     return _keypoints_detect(take, frame_index, options)
@@ -256,19 +232,6 @@ class TakeTask:
     groups: Groups | None = None
 
 
-def sync_groups(take: Take) -> tuple[Groups, str]:
-    """The take's frame groups from the sync stage (device clocks fitted to the host clock); host-time
-    rounding where the sync stage cannot group it (too few frames to fit a clock)."""
-    from .sync import SyncError, frame_groups
-
-    try:
-        groups = frame_groups(take.path)
-    except SyncError:
-        return frame_groups_from_host_times(take), "host-time rounding (frames.csv)"
-    order = [groups.cameras.index(c) for c in take.cameras]
-    return (groups.frame_ns, groups.frame_index[:, order]), "sync (fitted device clocks)"
-
-
 def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, str, str]:
     take = Take(task.path)
     if task.groups is not None:
@@ -278,8 +241,8 @@ def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, 
                                 f"({len(frame_ns)}, {len(take.cameras)}) for its cameras")
         grouping = "given"
     else:
-        (frame_ns, frame_index), grouping = sync_groups(take)
-        frame_ns, frame_index = np.asarray(frame_ns, np.int64), np.asarray(frame_index, np.int64)
+        groups = frame_groups(take)
+        frame_ns, frame_index, grouping = groups.frame_ns, groups.frame_index, groups.description
     kp, source = take_keypoints(take, frame_index, task.options)
     return take, frame_ns, frame_index, kp, source, grouping
 
@@ -320,6 +283,7 @@ def _run(fn: Callable, tasks: list[TakeTask], workers: int, scheduler: str | Non
     if not tasks:
         return
     if scheduler:
+        # Dask is optional and slow to import: only a run on a cluster needs it
         from distributed import Client, as_completed
 
         with Client(scheduler) as client:
@@ -331,9 +295,6 @@ def _run(fn: Callable, tasks: list[TakeTask], workers: int, scheduler: str | Non
                     yield futures[fut], exc
         return
     if workers > 1:
-        import concurrent.futures as cf
-        import multiprocessing
-
         ctx = multiprocessing.get_context("forkserver")
         with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             futures = {pool.submit(fn, t): t for t in tasks}
@@ -357,17 +318,13 @@ def take_key(path: Path) -> str:
 
 
 def session_subject(session: Path) -> str | None:
-    """The subject named by SESSION/session.toml (read by the recorder's own reader, so a malformed
-    file gives its SessionError); None when there is no file or it names no subject."""
-    from manus_core.session import load_session  # the recorder owns the format; imported where it is used
-
+    """The subject named by SESSION/session.toml (read by the session format's own reader, so a
+    malformed file gives its SessionError); None when there is no file or it names no subject."""
     found = load_session(session)
     return (found.subject or None) if found is not None else None
 
 
 def _calibration(calib: Path) -> tuple[CameraRig, dict]:
-    from .calibration.formats import load_cameras
-
     if not calib.exists():
         raise AnnotateError(f"{calib}: no such calibration (give the calibration folder or its cameras.json)")
     rig = load_cameras(calib)
@@ -391,11 +348,13 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
              options: AnnotateOptions = AnnotateOptions(), *, workers: int = 1, scheduler: str | None = None,
              force: bool = False, bones: str | Path | np.ndarray | None = None,
              groups: Mapping[str, Groups] | Callable[[Take], Groups] | None = None,
-             progress: Callable[[str], None] | None = None) -> AnnotateSummary:
+             progress: Progress = silent) -> AnnotateSummary:
     """Annotate takes into DATASET.h5 (see the module doc). Returns what was done.
 
     groups: frame groups per take (a mapping from the take's path or key, or a function of the
-    Take); takes without get the sync stage's groups. progress(key) is called per finished take.
+    Take); takes without get the groups saved with their sync report, or the same grouping
+    computed now when they have none (dataset_tools.sync.frame_groups). progress("annotate", takes
+    done, takes) after each take, those kept from before first.
     Takes that fail are listed in the summary's `failed`; the others are written.
     """
     calib = Path(calib)
@@ -426,8 +385,8 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
 
     todo = [(t, k) for t, k in zip(opened, keys) if k not in done]
     summary.resumed = [k for k in keys if k in done]
-    for key in summary.resumed if progress else ():
-        progress(key)
+    finished = len(summary.resumed)
+    progress("annotate", finished, len(keys))
     session_bones = _session_bones(todo, list(zip(opened, keys)), bones, make_task, workers, scheduler, summary)
     tasks = [make_task(t, k, *session_bones.get(t.path.resolve().parent, (None, "take"))) for t, k in todo]
     for task, result in _run(annotate_take, tasks, workers, scheduler):
@@ -440,8 +399,8 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
             summary.annotated.append(task.key)
             summary.frames += len(result.frame_ns)
             summary.frames_fitted += int(np.isfinite(result.joint_angles_raw[:, 0]).sum())
-        if progress:
-            progress(task.key)
+        finished += 1
+        progress("annotate", finished, len(keys))
     if writer.saved:
         writer.finalize()
     return summary

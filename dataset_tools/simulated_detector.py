@@ -20,21 +20,22 @@ scored against the ground truth. What it does to each (frame, camera, joint):
 
 Everything is seeded and vectorized over frames, cameras and joints (the occlusion tests run in
 blocks of frames to bound memory). `keypoints_for_take` builds the keypoints of a recorded
-simulated take from its ground_truth.h5: the joints are interpolated to each camera's true
-mid-exposure time, so unsynchronized cameras see the hand where it really was.
+simulated take from its ground_truth.h5 (manus_core.ground_truth.GroundTruth): the joints are
+interpolated to each camera's true mid-exposure time, so unsynchronized cameras see the hand
+where it really was.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from manus_core.skeleton import BONES
 from manus_core.errors import SimulatedDetectorError
+from manus_core.ground_truth import LABEL_BACKGROUND, LABEL_OBJECT, LABEL_WALLS, GroundTruth
+from manus_core.skeleton import BONES
 
 # Radius (m) of the flesh around each bone for self-occlusion: the thumb's metacarpal (thenar) and
 # the phalanges; the other metacarpals are inside the palm triangles.
@@ -46,7 +47,7 @@ DEFAULT_BONE_RADII = np.array([
     0.0, 0.008, 0.007, 0.0062,
 ])
 PALM_TRIANGLES = np.array([[0, 1, 5], [0, 5, 9], [0, 9, 13], [0, 13, 17]])
-OCCLUDING_LABELS = (2, 4)  # object, walls and table in ground_truth.h5 labels
+OCCLUDING_LABELS = (LABEL_OBJECT, LABEL_WALLS)  # the ground truth's label classes that hide a joint
 _BLOCK = 16  # frames per block of the occlusion tests
 
 # ray-test callable: (frame (N,), origin (N,3), unit direction (N,3)) -> distance to the first hit (N,)
@@ -218,59 +219,31 @@ def _on_labels(image: np.ndarray, uv: np.ndarray, classes: tuple[int, ...]) -> n
 
 # --- simulated takes -------------------------------------------------------------------------------
 
-def read_ground_truth(path: str | Path) -> dict[str, np.ndarray]:
-    """The arrays of a take's ground_truth.h5 that keypoint simulation needs (labels stay on disk)."""
-    import h5py
-
-    path = Path(path)
-    need = ("cameras/ids", "frames/tick_ns", "frames/exposure_mid_ns", "frames/dropped", "hand/joints3d")
-    try:
-        with h5py.File(path, "r") as f:
-            missing = [k for k in need if k not in f]
-            if missing:
-                raise SimulatedDetectorError(f"{path}: missing {', '.join(missing)} (not the ground truth of a "
-                                             f"take with a hand)")
-            gt = {k: f[k][()] for k in need}
-            for name in ("K", "dist", "R", "t", "size"):
-                if f"cameras/{name}" in f:
-                    gt[f"cameras/{name}"] = f[f"cameras/{name}"][()]
-            gt["cameras/ids"] = np.array([i.decode() if isinstance(i, bytes) else str(i) for i in gt["cameras/ids"]])
-            gt["labels/frames"] = f["labels/frames"][()] if "labels/frames" in f else np.zeros(0, np.int64)
-    except OSError as exc:
-        raise SimulatedDetectorError(f"{path}: cannot be read as HDF5 ({exc})") from None
-    gt["path"] = np.array(str(path))
-    return gt
-
-
-def true_rig(gt: Mapping[str, np.ndarray], cam_ids: tuple[str, ...] | None = None) -> CameraRig:
+def true_rig(gt: GroundTruth, cam_ids: tuple[str, ...] | None = None) -> CameraRig:
     """The exact cameras of a simulated take (from its ground truth), in the order of cam_ids."""
-    try:
-        rig = CameraRig(tuple(gt["cameras/ids"]), gt["cameras/K"], gt["cameras/dist"], gt["cameras/R"],
-                        gt["cameras/t"], gt["cameras/size"])
-    except KeyError as exc:
-        raise SimulatedDetectorError(f"{gt.get('path', 'ground truth')}: no camera {exc} array") from None
+    rig = gt.cameras.rig()
     missing = [c for c in cam_ids or () if c not in rig.ids]
     if missing:
-        raise SimulatedDetectorError(f"{gt.get('path', 'ground truth')}: no camera {', '.join(missing)}")
+        raise SimulatedDetectorError(f"{gt.path}: no camera {', '.join(missing)}")
     return rig.subset(cam_ids) if cam_ids is not None else rig
 
 
-def exposure_times(gt: Mapping[str, np.ndarray], cam_ids: tuple[str, ...],
-                   host_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def exposure_times(gt: GroundTruth, cam_ids: tuple[str, ...], host_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """True mid-exposure (ns, float; NaN where no frame) of the frames that reached the host at
     host_ns (T,C) (NaN or -1: no frame), the camera's last exposure before the arrival, and that
     exposure's tick (the ground truth's frame axis; -1 where no frame)."""
-    ids = list(gt["cameras/ids"])
+    ids = list(gt.cameras.ids)
     missing = [c for c in cam_ids if c not in ids]
     if missing:
-        raise SimulatedDetectorError(f"ground truth has no camera {', '.join(missing)}")
+        raise SimulatedDetectorError(f"{gt.path}: no camera {', '.join(missing)}")
+    frames = gt.frames
     host = np.asarray(host_ns, dtype=np.float64)
     out = np.full(host.shape, np.nan)
     ticks = np.full(host.shape, -1, np.int64)
     for c, cam in enumerate(cam_ids):
         row = ids.index(cam)
-        exp = gt["frames/exposure_mid_ns"][row]
-        cols = np.flatnonzero((exp >= 0) & ~gt["frames/dropped"][row])
+        exp = frames.exposure_mid_ns[row]
+        cols = np.flatnonzero((exp >= 0) & ~frames.dropped[row])
         order = np.argsort(exp[cols], kind="stable")
         seen, cols = exp[cols][order].astype(np.float64), cols[order]
         ok = np.flatnonzero(np.isfinite(host[:, c]) & (host[:, c] >= 0))
@@ -280,11 +253,11 @@ def exposure_times(gt: Mapping[str, np.ndarray], cam_ids: tuple[str, ...],
     return out, ticks
 
 
-def joints_at(gt: Mapping[str, np.ndarray], t_ns: np.ndarray) -> np.ndarray:
-    """True joints at times t_ns (any shape, ns): linear between the ticks of the ground truth
-    (their motion is smooth; the error is far below a micrometre at 120 fps). NaN stays NaN."""
-    ticks = gt["frames/tick_ns"].astype(np.float64)
-    joints = gt["hand/joints3d"].reshape(len(ticks), -1)
+def joints_at(tick_ns: np.ndarray, joints3d: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+    """Joints (F,21,3) given on the ticks tick_ns (F,), at times t_ns (any shape, ns): linear between
+    the ticks (the motion is smooth; the error is far below a micrometre at 120 fps). NaN stays NaN."""
+    ticks = np.asarray(tick_ns, np.float64)
+    joints = np.asarray(joints3d).reshape(len(ticks), -1)
     t = np.asarray(t_ns, dtype=np.float64)
     flat = t.reshape(-1)
     pos = np.interp(np.nan_to_num(flat, nan=ticks[0]), ticks, np.arange(len(ticks)))
@@ -298,22 +271,19 @@ def joints_at(gt: Mapping[str, np.ndarray], t_ns: np.ndarray) -> np.ndarray:
 
 class _GroundTruthLabels(Mapping):
     """{row of the take's frame groups: (C,H,W) labels} from ground_truth.h5, read one row at a
-    time; a camera whose frame in that row has no labels gets background (0) everywhere."""
+    time; a camera whose frame in that row has no labels gets background everywhere."""
 
-    def __init__(self, path: Path, size: tuple[int, int], rows: dict[int, list[tuple[int, int, int]]],
+    def __init__(self, gt: GroundTruth, size: tuple[int, int], rows: dict[int, list[tuple[int, int, int]]],
                  n_cameras: int) -> None:
-        self.path, self.size, self.rows = path, size, rows   # row -> [(camera, gt camera, label index)]
+        self.gt, self.size, self.rows = gt, size, rows   # row -> [(camera, gt camera, label index)]
         self.n_cameras = n_cameras
 
     def __getitem__(self, row: int) -> np.ndarray:
-        import h5py
-
-        entries = self.rows[row]
-        out = np.zeros((self.n_cameras,) + self.size, np.uint8)
-        with h5py.File(self.path, "r") as f:
-            for c, gt_cam, index in entries:
-                image = f["labels/image"][gt_cam, index]
-                out[c, :image.shape[0], :image.shape[1]] = image[:self.size[0], :self.size[1]]
+        cams, gt_cams, index = (list(v) for v in zip(*self.rows[row]))
+        out = np.full((self.n_cameras,) + self.size, LABEL_BACKGROUND, np.uint8)
+        images = self.gt.label_images(gt_cams, index)[:, :self.size[0], :self.size[1]]
+        for c, image in zip(cams, images):
+            out[c, :image.shape[0], :image.shape[1]] = image
         return out
 
     def __iter__(self):
@@ -323,26 +293,26 @@ class _GroundTruthLabels(Mapping):
         return len(self.rows)
 
 
-def keypoints_for_take(gt: Mapping[str, np.ndarray], rig: CameraRig, host_ns: np.ndarray,
+def keypoints_for_take(gt: GroundTruth, rig: CameraRig, host_ns: np.ndarray,
                        detector: SimulatedDetector | None = None, use_labels: bool = True) -> np.ndarray:
     """Keypoints (T,C,21,3) of a simulated take's frame groups.
 
-    gt: read_ground_truth(...); rig: the cameras (in the order of the columns of host_ns);
-    host_ns (T,C): host arrival of each camera's frame in each group (NaN or -1: none). Frames
-    whose tick has ground-truth labels take the object's occlusion from them.
+    gt: the take's ground truth (with a hand); rig: the cameras (in the order of the columns of
+    host_ns); host_ns (T,C): host arrival of each camera's frame in each group (NaN or -1: none).
+    Frames whose tick has ground-truth labels take the object's occlusion from them.
     """
     detector = detector or SimulatedDetector()
     exposure, ticks = exposure_times(gt, rig.ids, host_ns)
-    joints = joints_at(gt, exposure)
+    joints = joints_at(gt.frames.tick_ns, gt.hand.joints3d, exposure)
     labels = None
-    if use_labels and len(gt["labels/frames"]) and "path" in gt:
-        label_index = {int(f): i for i, f in enumerate(gt["labels/frames"])}
-        ids = list(gt["cameras/ids"])
+    if use_labels and len(gt.label_frames):
+        label_index = {int(f): i for i, f in enumerate(gt.label_frames)}
+        ids = list(gt.cameras.ids)
         rows: dict[int, list[tuple[int, int, int]]] = {}
         for r, c in zip(*np.nonzero(np.isin(ticks, list(label_index)))):
             rows.setdefault(int(r), []).append((int(c), ids.index(rig.ids[c]), label_index[int(ticks[r, c])]))
         height, width = int(rig.size[:, 1].max()), int(rig.size[:, 0].max())
-        labels = _GroundTruthLabels(Path(str(gt["path"])), (height, width), rows, len(rig.ids))
+        labels = _GroundTruthLabels(gt, (height, width), rows, len(rig.ids))
     kp = detector.detect(rig, joints, labels=labels)
     kp[~np.isfinite(exposure)] = (np.nan, np.nan, 0.0)
     return kp

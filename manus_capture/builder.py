@@ -11,7 +11,27 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from manus_core.errors import BuildError
+import torch
+
+from dataset_tools.annotate import take_key
+from dataset_tools.segmentation.takes import segment_take
+from manus_capture.splat.gaussians import Gaussians
+from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
+from manus_capture.splat.optimize import LearningRates
+from manus_capture.splat.takes import (
+    HandFrames,
+    crop_views,
+    hand_frames_from_dataset,
+    hand_masks_from_dataset,
+    hand_views_from_take,
+    object_views_from_take,
+    spread_frames,
+)
+from manus_capture.splat.trainer import SURFACE_EPS2D, SURFEL_THIN_M, ObjectConfig, train_object
+from manus_capture.splat.trainer import evaluate as evaluate_object
+from manus_capture.template import capsule_template
+from manus_core.cameras import CameraRig
+from manus_core.errors import BuildError, TakeInputError
 
 HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PSNR
 # Contact is measured between Gaussian centres, so both models' centres should lie on their
@@ -21,24 +41,27 @@ HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PS
 HAND_MEANS_LR = 4e-4
 
 
-def surface_hand(bone_lengths, sh_degree: int = 1):
+def surface_hand(bone_lengths, sh_degree: int = 1) -> HandGaussians:
     """A MANUS-Hand model of surfels on the capsule template of the subject's bone lengths."""
-    from manus_capture.splat.hand import HandGaussians
-    from manus_capture.splat.trainer import SURFEL_THIN_M
-    from manus_capture.template import capsule_template
-
     template = capsule_template(bone_lengths)
     return HandGaussians.on_surface(bone_lengths, template.points_rest, template.normals_rest, template.bone,
                                     SURFEL_THIN_M, sh_degree=sh_degree)
 
 
-def surface_hand_config(iterations: int, **changes):
+def surface_hand_config(iterations: int, **changes) -> HandConfig:
     """HandConfig.surfels with the centre steps of HAND_MEANS_LR."""
-    from manus_capture.splat.hand import HandConfig
-    from manus_capture.splat.trainer import LearningRates
-
-    lr = LearningRates(means=HAND_MEANS_LR, means_final=HAND_MEANS_LR / 100, sh0=1e-2, log_scales=1e-2)
+    lr = LearningRates(means=HAND_MEANS_LR, means_final=HAND_MEANS_LR / 100, sh0=1e-2, scales=1e-2)
     return HandConfig.surfels(iterations, **{"lr": lr, **changes})
+
+
+@dataclass(frozen=True)
+class TrainedModels:
+    """MANUS-Hand and the object's Gaussians trained on one set of cameras; `metrics` holds the
+    held-out-pose PSNR of the hand and the training-view PSNR of the object when asked for."""
+
+    hand: HandGaussians
+    object: Gaussians
+    metrics: dict
 
 
 @dataclass
@@ -46,10 +69,10 @@ class ModelInputs:
     """The calibrated rig, the hand take with annotate's poses and hand masks, the object take
     with its masks, and the training settings."""
 
-    rig: object
+    rig: CameraRig
     hand_take: Path
     object_take: Path
-    hand_frames: object           # splat.takes.HandFrames
+    hand_frames: HandFrames
     train_rows: np.ndarray
     test_rows: np.ndarray
     train_masks: np.ndarray       # (P,C,H,W) hand masks of train_rows, rig order
@@ -69,11 +92,6 @@ class ModelInputs:
 
         The poses are frame groups spread over the take (spread_frames), not only its holds.
         """
-        from dataset_tools.annotate import take_key
-        from dataset_tools.segmentation.takes import segment_take
-        from manus_capture.splat.takes import (TakeInputError, hand_frames_from_dataset, hand_masks_from_dataset,
-                                               spread_frames)
-
         frames = hand_frames_from_dataset(dataset, take_key(hand_take))
         rows = spread_frames(frames.angles, poses + HELD_OUT_POSES)
         if len(rows) < HELD_OUT_POSES + 2:
@@ -85,37 +103,29 @@ class ModelInputs:
                                        for r in (train, test))
         except TakeInputError:
             seg = segment_take(hand_take, rig, background_take, None)
-            hand_masks = seg["hand"][:, [seg["cameras"].index(cam) for cam in rig.ids]]
+            hand_masks = seg.hand[:, seg.in_order(rig.ids)]
             train_masks, test_masks = hand_masks[train], hand_masks[test]
         if object_masks is None:
             seg = segment_take(object_take, rig, background_take, object_take)
-            object_masks = seg["object"][0][[seg["cameras"].index(cam) for cam in rig.ids]]
+            object_masks = seg.object[0][seg.in_order(rig.ids)]
         return cls(rig, Path(hand_take), Path(object_take), frames, train, test, train_masks, test_masks,
                    object_masks, **settings)
 
-    def train(self, cams: np.ndarray, evaluate: bool = False):
-        """(hand model, object Gaussians, metrics) trained on the cameras `cams` (indices into rig);
-        with `evaluate`, held-out-pose PSNR of the hand and training-view PSNR of the object."""
-        import torch
-
-        from manus_capture.splat.hand import evaluate_hand, train_hand
-        from manus_capture.splat.takes import crop_views, hand_views_from_take, object_views_from_take
-        from manus_capture.splat.trainer import SURFACE_EPS2D, ObjectConfig, train_object
-        from manus_capture.splat.trainer import evaluate as evaluate_object
-
+    def train(self, cams: np.ndarray, evaluate: bool = False) -> TrainedModels:
+        """Both models trained on the cameras `cams` (indices into rig); with `evaluate`, their
+        metrics too."""
         cams = np.asarray(cams)
         sub = self.rig.subset([self.rig.ids[i] for i in cams])
         torch.manual_seed(self.seed)
         # CPU settings (ObjectConfig.surfels, HandConfig.surfels): hundreds of steps on windows
         # around the masks, scored on the whole views
         views = object_views_from_take(self.object_take, sub, masks=self.object_masks[cams], scale=self.scale)
-        obj = train_object(crop_views(views), ObjectConfig.surfels(self.object_iterations, seed=self.seed),
-                           progress=False).gaussians
+        obj = train_object(crop_views(views), ObjectConfig.surfels(self.object_iterations, seed=self.seed)).gaussians
         poses, hand_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.train_rows,
                                                  masks=self.train_masks[:, cams], scale=self.scale)
         hand = surface_hand(self.hand_frames.bone_lengths)
         train_hand(hand, poses, [crop_views(v) for v in hand_views],
-                   surface_hand_config(self.hand_iterations, seed=self.seed), progress=False)
+                   surface_hand_config(self.hand_iterations, seed=self.seed))
         metrics = {}
         if evaluate:
             test_poses, test_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.test_rows,
@@ -128,4 +138,4 @@ class ModelInputs:
                        "object_psnr_train_views_db": object_scores["psnr"],
                        "object_psnr_on_mask_db": object_scores["psnr_mask"],
                        "hand_gaussians": len(hand), "object_gaussians": len(obj)}
-        return hand, obj, metrics
+        return TrainedModels(hand, obj, metrics)

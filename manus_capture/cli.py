@@ -1,10 +1,10 @@
 """The `manus-capture` command line.
 
-Commands are loaded on demand: `--help` does not import torch or pycolmap, and a command whose
-module is not built yet answers in one line with exit code 2.
+Commands are loaded on demand: `--help` imports no command module (so neither torch nor pycolmap),
+and a command imports only its own module and what that module needs.
 
 Exit codes: 0 success, 1 the work ran and failed (a failing check, a verdict), 2 bad input or
-usage (a wrong file, a missing key, a command that is not built), 130 interrupted.
+usage (a wrong file, a missing key), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -38,19 +38,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def _not_built(name: str, help_text: str) -> click.Command:
-    def run() -> None:
-        raise _UsageError(f"'{name}' is not built yet in this version of manus-capture")
-
-    return click.Command(name, callback=run, help=f"{help_text} (not built yet)",
-                         short_help=f"{help_text} (not built yet)",
-                         context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
-
-
-class _UsageError(click.ClickException):
-    exit_code = 2
-
-
 class LazyGroup(click.Group):
     """A group whose sub-commands live in manus_capture.commands.<module>.command."""
 
@@ -60,15 +47,8 @@ class LazyGroup(click.Group):
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
         if name not in COMMANDS:
             return None
-        module_name, help_text = COMMANDS[name]
-        qualified = f"{__package__}.commands.{module_name}"
-        try:
-            module = importlib.import_module(qualified)
-        except ModuleNotFoundError as exc:
-            if exc.name != qualified:
-                raise
-            return _not_built(name, help_text)
-        return module.command
+        module_name, _ = COMMANDS[name]
+        return importlib.import_module(f"{__package__}.commands.{module_name}").command
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         # Listing uses the table, so `--help` stays fast and never imports a command module.

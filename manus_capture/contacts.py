@@ -17,6 +17,11 @@ from typing import Protocol
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
+
+from manus_core.dataset import add_arrays
+
+from .splat.rasterize import rasterize
 
 TAU_M = 0.004
 # Contact is drawn on the skin, which is opaque: every Gaussian is splatted this opaque, whatever
@@ -58,8 +63,6 @@ def contact_value(distance: np.ndarray, tau: float = TAU_M, soft: bool = False) 
 
 def _cpu_pairs(hand: np.ndarray, obj: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All (hand index, object index, distance) pairs closer than tau, through two KD-trees."""
-    from scipy.spatial import cKDTree
-
     pairs = cKDTree(hand).sparse_distance_matrix(cKDTree(obj), tau, output_type="ndarray")
     return pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), pairs["v"]
 
@@ -126,8 +129,6 @@ def render_values(model: PosedModel, angles: np.ndarray, values: np.ndarray, vie
     opaque, into C cameras: (composited value (C,H,W), premultiplied by alpha as rasterize()
     returns it, and alpha (C,H,W)). The value of the visible surface is their ratio where
     alpha > 0 (surface_value)."""
-    from .splat.rasterize import rasterize
-
     with torch.no_grad():
         posed = model.pose(torch.as_tensor(np.asarray(angles, dtype=np.float32)))
         means = posed["means"]
@@ -158,8 +159,6 @@ def contact_image(value: np.ndarray, alpha: np.ndarray, image: np.ndarray | None
 
 def write_contacts(path, key: str, maps: ContactMaps, attrs: dict) -> None:
     """Store a take's contact maps in DATASET.h5 (group `key`/contacts, compressed), atomically."""
-    from manus_core.dataset import add_arrays
-
     add_arrays(path, key, {"contacts/instant": maps.instant.astype(np.float16),
                            "contacts/accumulated": maps.accumulated,
                            "contacts/object_instant": maps.object_instant.astype(np.float16),

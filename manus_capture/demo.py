@@ -19,10 +19,37 @@ from pathlib import Path
 
 import numpy as np
 
+from dataset_tools.annotate import AnnotateOptions, annotate, take_key
+from dataset_tools.calibration.formats import load_cameras
+from dataset_tools.calibration.rig import calibrate_rig
+from dataset_tools.segmentation.takes import segment_take, write_masks
+from dataset_tools.sync import sync_take
+from manus_capture.builder import ModelInputs
+from manus_capture.contacts import contact_image, model_contacts, write_contacts
+from manus_capture.evaluate import (
+    canonical_pose,
+    mask_scores,
+    pick_views,
+    render_contacts,
+    score_contacts,
+    spread_cameras,
+)
+from manus_capture.report import ablation_png, keypoint_overlay, mask_comparison, write_html
+from manus_capture.splat.checkpoint import save_checkpoint
+from manus_capture.splat.takes import truth_cameras
+from manus_capture.splat.trainer import SURFACE_EPS2D
+from manus_capture.template import capsule_template
+from manus_core.cameras import CameraRig
+from manus_core.dataset import read_dataset
+from manus_core.errors import DemoError
 from manus_core.fileio import write_atomic
+from manus_core.ground_truth import GroundTruth
+from manus_core.take import Take
+from rig.layouts import make_rig
+from rig.record import RecordOptions, record_take
+from rig.sim.subject import with_sim_subject
 
 from .evaluate import MIN_PAINT_PX
-from manus_core.errors import DemoError
 
 SURFACE_BAND_M = 0.003    # Gaussians this close to the true hand surface are scored on its contact
 
@@ -93,50 +120,36 @@ class Demo:
     # ------------------------------------------------------------------ stages
 
     def record(self) -> dict:
-        from rig.layouts import make_rig
-        from rig.recorder import record_take
-        from rig.sim.subject import with_sim_subject
-
         c = self.config
         rig = make_rig("cube53", cameras=c.cameras, resolution=c.resolution, fps=c.fps, sync="software-trigger",
                        seed=c.seed)
         rig = with_sim_subject(rig, obj=c.object, paint=True, subject=c.subject)
         frames = 0
         for kind, name in TAKES:
-            result = record_take(rig, self.session, name, kind, c.durations[kind], force=True,
-                                 subject=c.subject, obj=c.object, use_leds=False, progress=False,
-                                 label_frames=[1] if kind in ("object", "canonical") else [])
+            result = record_take(rig, self.session, name, kind, c.durations[kind], RecordOptions(
+                force=True, subject=c.subject, obj=c.object, use_leds=False,
+                label_frames=[1] if kind in ("object", "canonical") else []))
             if result.status != "complete":
                 raise DemoError(f"take {name}: {result.status} ({result.reason})")
             frames += result.frames
         return {"takes": len(TAKES), "cameras": c.cameras, "frames": frames}
 
     def sync(self) -> dict:
-        import h5py
-
-        from dataset_tools.sync import sync_take
-
         found, true_drops, spreads = 0, 0, []
         for kind, _ in TAKES:
             report = sync_take(self.take[kind], force=True, optical=False)
-            with h5py.File(self.take[kind] / "ground_truth.h5") as gt:
-                true_drops += int(gt["frames/dropped"][()].sum())
+            true_drops += int(GroundTruth.of_take(self.take[kind]).frames.dropped.sum())
             found += sum(cam["frames_dropped"] for cam in report["cameras"].values())
             if report["spread_ms"]["p95"] is not None:
                 spreads.append(report["spread_ms"]["p95"])
         return {"drops_found": found, "drops_true": true_drops, "spread_p95_ms": max(spreads, default=float("nan"))}
 
     def calibrate(self) -> dict:
-        from dataset_tools.calibration.formats import load_cameras
-        from manus_core.cameras import CameraRig
-        from manus_capture.splat.takes import truth_cameras
-
         truth = truth_cameras(self.take["calibration"])
         if self.config.true_calibration:
             self.calib.mkdir(parents=True, exist_ok=True)
             truth.save(self.calib / "cameras.json")
             return {"source": "simulator (--true-calibration)"}
-        from dataset_tools.calibration.rig import calibrate_rig
 
         # the simulated cameras come with their lens calibration (as a lab's cameras would from an
         # intrinsics session with a board); their poses come from the tags
@@ -150,9 +163,6 @@ class Demo:
                 "rotation_err_deg_max": float(err["rotation_deg"].max()), "reprojection_rms_px": result.rms_px}
 
     def annotate(self) -> dict:
-        from dataset_tools.annotate import AnnotateOptions, annotate, take_key
-        from manus_core.dataset import read_dataset
-
         takes = [self.take[k] for k in ("hand", "grasp", "canonical")]
         summary = annotate(takes, self.calib, self.dataset, AnnotateOptions(keypoints="simulated"), force=True)
         if summary.failed:
@@ -170,40 +180,31 @@ class Demo:
                 "bone_length_err_mm": 1000 * float(np.abs(grasp.bone_lengths - truth["bone_lengths"]).max())}
 
     def _truth_at_groups(self, take: Path, frame_ns: np.ndarray) -> dict:
-        import h5py
-
-        with h5py.File(take / "ground_truth.h5") as gt:
-            tick = np.round((frame_ns - gt.attrs["t0_ns"]) * float(gt.attrs["fps"]) / 1e9).astype(int)
-            tick = np.clip(tick, 0, len(gt["hand/joints3d"]) - 1)
-            return {"joints3d": gt["hand/joints3d"][()][tick], "joint_angles": gt["hand/joint_angles"][()][tick],
-                    "bone_lengths": gt["hand/bone_lengths"][()]}
+        gt = GroundTruth.of_take(take)
+        hand = gt.hand
+        tick = np.clip(gt.tick_at(frame_ns), 0, len(hand.joints3d) - 1)
+        return {"joints3d": hand.joints3d[tick], "joint_angles": hand.joint_angles[tick],
+                "bone_lengths": hand.bone_lengths}
 
     def segment(self) -> dict:
-        import h5py
-
-        from dataset_tools.annotate import take_key
-        from dataset_tools.calibration.formats import load_cameras
-        from dataset_tools.segmentation.takes import segment_take, write_masks
-
         rig = load_cameras(self.calib)
         background, obj = self.take["calibration"], self.take["object"]
         metrics = {}
         for kind in ("object", "hand", "canonical"):
             result = segment_take(self.take[kind], rig, background, obj if kind != "hand" else None)
             write_masks(self.dataset, take_key(self.take[kind]), result, {"segmentation_background": str(background)})
-            order = [result["cameras"].index(c) for c in rig.ids]
+            order = result.in_order(rig.ids)
             if kind == "hand":
                 continue
-            with h5py.File(self.take[kind] / "ground_truth.h5") as gt:
-                labels = gt["labels/image"][:, 0]
+            labels = GroundTruth.of_take(self.take[kind]).labels([0])[:, 0]
             if kind == "object":
-                self.object_masks = result["object"][0][order]
+                self.object_masks = result.object[0][order]
                 metrics["object_iou"] = _iou(self.object_masks, labels == 2)
             else:
-                self.paint = result["paint"][order]
+                self.paint = result.paint[order]
                 self.true_paint = labels == 3
                 seen = self.true_paint.reshape(len(labels), -1).sum(1) >= MIN_PAINT_PX
-                metrics["hand_iou"] = _iou(result["hand"][0][order], (labels == 1) | (labels == 3))
+                metrics["hand_iou"] = _iou(result.hand[0][order], (labels == 1) | (labels == 3))
                 metrics["paint_iou"] = _iou(self.paint[seen], self.true_paint[seen])
                 metrics["paint_views"] = int(seen.sum())
         return metrics
@@ -212,10 +213,6 @@ class Demo:
     def reconstruct(self) -> dict:
         """MANUS-Hand from the hand take and object Gaussians from the object take, on every
         camera; checkpoints in models/."""
-        from dataset_tools.calibration.formats import load_cameras
-        from manus_capture.builder import ModelInputs
-        from manus_capture.splat.checkpoint import save_checkpoint
-        from manus_capture.splat.trainer import SURFACE_EPS2D
 
         c = self.config
         self.rig = load_cameras(self.calib)
@@ -223,7 +220,8 @@ class Demo:
                                           self.take["calibration"], poses=c.hand_frames,
                                           object_masks=self.object_masks, object_iterations=c.object_iterations,
                                           hand_iterations=c.hand_iterations, scale=c.scale, seed=c.seed)
-        self.hand, self.object, metrics = self.inputs.train(np.arange(len(self.rig)), evaluate=True)
+        models = self.inputs.train(np.arange(len(self.rig)), evaluate=True)
+        self.hand, self.object, metrics = models.hand, models.object, models.metrics
         self.models.mkdir(parents=True, exist_ok=True)
         blur = str(SURFACE_EPS2D)  # the splat blur the surfels were trained with (ModelInputs.train)
         save_checkpoint(self.models / "hand.safetensors", self.hand.gaussians, kind="hand",
@@ -235,12 +233,8 @@ class Demo:
     def contacts(self) -> dict:
         """Contacts of the grasp take (filtered joint angles) against the object, into DATASET.h5;
         scored on the true contact of the simulated hand's surface."""
-        import h5py
         from scipy.spatial import cKDTree
 
-        from dataset_tools.annotate import take_key
-        from manus_core.dataset import read_dataset
-        from manus_capture.contacts import model_contacts, write_contacts
 
         key = take_key(self.take["grasp"])
         grasp = read_dataset(self.dataset)[key]
@@ -251,8 +245,8 @@ class Demo:
         self.maps = maps
         # the truth lives on the simulated hand's surface points: carry it to each Gaussian near
         # the surface (in the canonical, rest-pose space both share)
-        with h5py.File(self.take["grasp"] / "ground_truth.h5") as gt:
-            points, truth = gt["contact/points_rest"][()], gt["contact/accumulated"][()]
+        contact = GroundTruth.of_take(self.take["grasp"]).contact
+        points, truth = contact.points_rest, contact.accumulated
         dist, nearest = cKDTree(points).query(self.hand.gaussians.means.detach().numpy())
         surface = dist < SURFACE_BAND_M
         pred = maps.accumulated[surface] > 0.5
@@ -264,11 +258,6 @@ class Demo:
     def evaluate(self) -> dict:
         """Contact against the segmented paint in the canonical take's views; the capsule baseline;
         the camera ablation (models retrained on fewer cameras)."""
-        from dataset_tools.annotate import take_key
-        from manus_core.dataset import read_dataset
-        from manus_capture.contacts import model_contacts
-        from manus_capture.evaluate import canonical_pose, mask_scores, pick_views, score_contacts, spread_cameras
-        from manus_capture.template import capsule_template
 
         c = self.config
         canonical = canonical_pose(read_dataset(self.dataset)[take_key(self.take["canonical"])].joint_angles)
@@ -286,9 +275,9 @@ class Demo:
                 ablation[count] = ours
                 continue
             self.say(f"    camera ablation: {count} cameras")
-            hand, obj, _ = self.inputs.train(spread_cameras(self.rig, count))
-            maps = model_contacts(hand, self.grasp_angles, obj, c.tau)
-            ablation[count], _ = score_contacts(hand, canonical, maps.accumulated, self.rig, self.paint, views)
+            models = self.inputs.train(spread_cameras(self.rig, count))
+            maps = model_contacts(models.hand, self.grasp_angles, models.object, c.tau)
+            ablation[count], _ = score_contacts(models.hand, canonical, maps.accumulated, self.rig, self.paint, views)
         self.scores = {"ours": ours, "baseline": baseline, "true_paint": true_paint}
         return {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
                 "baseline_f1": baseline.mean_f1, "contact_iou_vs_true_paint": true_paint.mean_iou,
@@ -326,13 +315,7 @@ def pictures(demo: Demo, count: int = 3) -> list[tuple[str, str]]:
     """The report's PNGs in DIR/images: keypoints, contacts, paint comparison, ablation, sync, cameras."""
     import shutil
 
-    from dataset_tools.annotate import take_key
-    from manus_core.dataset import read_dataset
-    from manus_core.take import Take
 
-    from .contacts import contact_image
-    from .evaluate import render_contacts
-    from .report import ablation_png, keypoint_overlay, mask_comparison
 
     demo.images.mkdir(parents=True, exist_ok=True)
     out: list[tuple[str, str]] = []
@@ -374,7 +357,6 @@ def pictures(demo: Demo, count: int = 3) -> list[tuple[str, str]]:
 def run_demo(out: Path, config: DemoConfig = DemoConfig(), say: Callable[[str], None] = print,
              force: bool = False) -> dict:
     """Run every stage into `out` and return the summary (also DIR/summary.json and report.html)."""
-    from .report import write_html
 
     out = Path(out)
     if (out / "summary.json").exists() and not force:

@@ -16,10 +16,10 @@ import numpy as np
 import torch
 
 from manus_core.cameras import CameraRig, scale_intrinsics
+from manus_core.errors import EvaluateError
 
 from .contacts import PosedModel, render_values, surface_value
 from .splat.trainer import world_to_camera
-from manus_core.errors import EvaluateError
 
 MIN_PAINT_PX = 20       # a view "shows paint" with at least this many paint pixels
 DEFAULT_VIEWS = 10      # ground-truth views per sequence, as in the paper

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from manus_core.cameras import CameraRig
 from dataset_tools.segmentation import contact_votes
+from manus_core.cameras import CameraRig
 
 from .template import capsule_template
 

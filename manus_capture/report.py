@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from manus_core.fileio import write_atomic
+from manus_core.skeleton import BONES
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
@@ -106,7 +107,6 @@ def keypoint_overlay(image: np.ndarray, detected: np.ndarray, projected: np.ndar
     as its skeleton in magenta."""
     import cv2
 
-    from manus_core.skeleton import BONES
 
     out = np.ascontiguousarray(image).copy()
     for a, b in BONES:

@@ -13,8 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from manus_core.fileio import write_atomic
 from manus_core.errors import CalibrationFileError
+from manus_core.fileio import write_atomic
+
+
+PROJECT_BLOCK = 1 << 15  # (cameras x points) projected per block
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -80,30 +83,41 @@ class CameraRig:
 
     def to_camera(self, X: np.ndarray) -> np.ndarray:
         """World points (N,3) to camera coordinates (C,N,3)."""
-        return np.einsum("cij,nj->cni", self.R, np.asarray(X, dtype=np.float64)) + self.t[:, None, :]
+        # one (3C x 3) @ (3 x N) product on BLAS; an einsum over the same axes is ten times slower
+        C = len(self.R)
+        out = (self.R.reshape(C * 3, 3) @ np.asarray(X, dtype=np.float64).T).reshape(C, 3, -1)
+        out += self.t[:, :, None]
+        return out.transpose(0, 2, 1)
 
-    def distort(self, xy: np.ndarray) -> np.ndarray:
-        """Normalized undistorted coordinates (C,N,2) to normalized distorted ones (C,N,2)."""
+    def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         k1, k2, p1, p2, k3 = (self.dist[:, i, None] for i in range(5))
-        x, y = xy[..., 0], xy[..., 1]
         r2 = x * x + y * y
         radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=-1)
+        return xd, yd
+
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Normalized undistorted coordinates (C,N,2) to normalized distorted ones (C,N,2)."""
+        return np.stack(self._distort(xy[..., 0], xy[..., 1]), axis=-1)
 
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points (N,3) to distorted pixels (C,N,2); points behind a camera give NaN."""
-        Xc = self.to_camera(X)
-        z = Xc[..., 2:3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = np.where(z > 0, Xc[..., :2] / z, np.nan)
-        xd = self.distort(xy)
-        fx, fy = self.K[:, 0, 0, None], self.K[:, 1, 1, None]
-        cx, cy, skew = self.K[:, 0, 2, None], self.K[:, 1, 2, None], self.K[:, 0, 1, None]
-        u = fx * xd[..., 0] + skew * xd[..., 1] + cx
-        v = fy * xd[..., 1] + cy
-        return np.stack([u, v], axis=-1)
+        X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+        out = np.empty((len(self.R), len(X), 2))
+        # blocks of points small enough for the distortion's temporaries to stay in the CPU cache:
+        # whole-array temporaries of a carving volume made projection memory-bound
+        step = max(1, PROJECT_BLOCK // max(len(self.R), 1))
+        for start in range(0, len(X), step):
+            Xc = self.to_camera(X[start:start + step])
+            z = Xc[..., 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inv = np.where(z > 0, 1.0 / z, np.nan)
+            xd, yd = self._distort(Xc[..., 0] * inv, Xc[..., 1] * inv)
+            block = out[:, start:start + step]
+            block[..., 0] = self.K[:, 0, 0, None] * xd + self.K[:, 0, 1, None] * yd + self.K[:, 0, 2, None]
+            block[..., 1] = self.K[:, 1, 1, None] * yd + self.K[:, 1, 2, None]
+        return out
 
     def to_json(self) -> dict:
         cams = []

@@ -32,13 +32,15 @@ import json
 import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
+import h5py
 import numpy as np
 
+from manus_core.errors import DatasetError
 from manus_core.fileio import atomic_output, write_atomic
 from manus_core.skeleton import DOF_NAMES, JOINT_NAMES, HandSkeleton
-from manus_core.errors import DatasetError
 
 FORMAT = "manus-capture dataset"
 VERSION = 1
@@ -60,8 +62,6 @@ _JSON_ATTRS = ("skeleton", "filter", "flags")
 
 
 def software_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return f"manus-capture {version('manus-capture')}"
     except PackageNotFoundError:
@@ -148,8 +148,6 @@ def _read_group(group, key: str) -> TakeAnnotation:
 
 def _take_keys(f) -> list[str]:
     """Keys of the take groups (groups holding frame_ns), at any depth."""
-    import h5py
-
     keys: list[str] = []
 
     def visit(name, obj):
@@ -169,8 +167,6 @@ def _check_format(f, path: Path) -> None:
 
 
 def _open(path: Path):
-    import h5py
-
     try:
         return h5py.File(path, "r")
     except FileNotFoundError:
@@ -240,8 +236,6 @@ class DatasetWriter:
     @property
     def saved(self) -> list[str]:
         """Keys of the takes saved as parts (finished, not yet in the output)."""
-        import h5py
-
         keys = []
         for part in sorted(self.parts.glob("*.h5")) if self.parts.is_dir() else []:
             try:
@@ -258,8 +252,6 @@ class DatasetWriter:
 
     def add(self, ann: TakeAnnotation) -> Path:
         """Save one finished take, atomically, as a part file."""
-        import h5py
-
         buffer = io.BytesIO()
         with h5py.File(buffer, "w") as f:
             _new_file_attrs(f)
@@ -271,8 +263,6 @@ class DatasetWriter:
 
     def finalize(self) -> list[str]:
         """Write the output (existing takes not replaced + all parts) atomically; returns its takes."""
-        import h5py
-
         parts = sorted(self.parts.glob("*.h5")) if self.parts.is_dir() else []
         keys: list[str] = []
         with atomic_output(self.path) as tmp, h5py.File(tmp, "w") as out:
@@ -315,8 +305,6 @@ def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray], attrs:
     """Add (or replace) arrays of take `key` in DATASET.h5, gzip-compressed, atomically: a copy of
     the file is changed and renamed over it. Later stages (segment, contacts) add to the takes
     that annotate wrote; a crash leaves the old file whole."""
-    import h5py
-
     path = Path(path)
     with atomic_output(path) as tmp:
         if path.exists():

@@ -118,6 +118,10 @@ class SimulatedDetectorError(InputError):
     """Inputs the simulated detector cannot use (shapes, ground truth, cameras)."""
 
 
+class GroundTruthError(InputError):
+    """A ground_truth.h5 that is missing, unreadable or lacks what was asked of it; names the file."""
+
+
 class OneEuroError(InputError):
     """Bad input to the filter (shapes, timestamps, parameters); the message says which."""
 
@@ -170,6 +174,14 @@ class IntrinsicsError(CalibrationError):
     def __init__(self, camera: str, reason: str) -> None:
         super().__init__(f"camera {camera}: {reason}")
         self.camera, self.reason = camera, reason
+
+
+class ExtrinsicsError(CalibrationError):
+    """Cameras that cannot be placed; the message names them and says why."""
+
+
+class ColmapError(CalibrationError):
+    """COLMAP could not register the cameras, or the result cannot be put into the world frame."""
 
 
 class DatasetError(InputError):

@@ -6,12 +6,11 @@
 
 A session is one rig configuration: every take of it shares the calibration and the clocks, so a
 take recorded with a different configuration goes into a new session (SessionError says which
-line differs). The file is rewritten atomically after every change.
+key differs). The file is rewritten atomically after every change.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import getpass
 import re
@@ -20,10 +19,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from manus_core.fileio import write_atomic
+import tomli_w
 
-from manus_core.rig_config import ConfigError, RigConfig, _toml_value, rig_from_dict, rig_to_toml
-from manus_core.errors import SessionError
+from manus_core.errors import ConfigError, SessionError
+from manus_core.fileio import write_atomic
+from manus_core.rig_config import RigConfig, rig_from_dict, rig_to_dict
 
 SESSION_FILE = "session.toml"
 TAKE_KINDS = ("calibration", "hand", "object", "grasp", "canonical")
@@ -80,14 +80,9 @@ class Session:
     def to_toml(self) -> str:
         head = {"subject": self.subject, "operator": self.operator, "object": self.object,
                 "paint": self.paint, "created": self.created, "rig": self.rig.name}
-        lines = ["# manus-capture session (docs/recording.md)", "[session]"]
-        lines += [f"{k} = {_toml_value(v)}" for k, v in head.items()]
-        lines.append("")
-        for take in self.takes:
-            lines.append("[[takes]]")
-            lines += [f"{k} = {_toml_value(v)}" for k, v in take.items() if v is not None]
-            lines.append("")
-        return "\n".join(lines) + "\n" + rig_to_toml(self.rig)
+        takes = [{k: v for k, v in take.items() if v is not None} for take in self.takes]
+        doc = {"session": head, **({"takes": takes} if takes else {}), **rig_to_dict(self.rig)}
+        return "# manus-capture session (docs/recording.md)\n" + tomli_w.dumps(doc)
 
     def save(self) -> None:
         write_atomic(self.file, self.to_toml().encode())
@@ -118,11 +113,18 @@ def load_session(path: str | Path) -> Session | None:
                    created=str(head.get("created", "")), takes=[dict(t) for t in takes])
 
 
-def _first_difference(a: str, b: str) -> str:
-    for la, lb in zip(a.splitlines(), b.splitlines()):
-        if la != lb:
-            return f"{la!r} (session) vs {lb!r}"
-    return "the number of cameras or tables differs"
+def _first_difference(mine: Any, theirs: Any, key: str = "") -> str | None:
+    """The first key where two rig_to_dict trees differ, as 'KEY = VALUE (session) vs KEY = VALUE'."""
+    if isinstance(mine, dict) and isinstance(theirs, dict):
+        names = list(mine) + [k for k in theirs if k not in mine]
+        found = (_first_difference(mine.get(k), theirs.get(k), f"{key}.{k}".lstrip(".")) for k in names)
+        return next((d for d in found if d), None)
+    if isinstance(mine, list) and isinstance(theirs, list):
+        if len(mine) != len(theirs):
+            return f"{len(mine)} {key} (session) vs {len(theirs)}"
+        found = (_first_difference(a, b, f"{key}[{i}]") for i, (a, b) in enumerate(zip(mine, theirs)))
+        return next((d for d in found if d), None)
+    return None if mine == theirs else f"{key} = {mine!r} (session) vs {key} = {theirs!r}"
 
 
 def open_session(path: str | Path, rig: RigConfig, *, subject: str | None = None,
@@ -141,10 +143,10 @@ def open_session(path: str | Path, rig: RigConfig, *, subject: str | None = None
         folder.mkdir(parents=True, exist_ok=True)
         session.save()
         return session
-    mine, theirs = rig_to_toml(session.rig), rig_to_toml(rig)
-    if mine != theirs:
+    difference = _first_difference(rig_to_dict(session.rig), rig_to_dict(rig))
+    if difference:
         raise SessionError(f"{session.file}: recorded with another rig configuration "
-                           f"({_first_difference(mine, theirs)}); record into a new session")
+                           f"({difference}); record into a new session")
     for what, given, stored in (("subject", subject, session.subject), ("operator", operator, session.operator),
                                 ("object", obj, session.object)):
         if given and stored and given != stored:

@@ -1,7 +1,7 @@
 """Read-only access to a recorded take folder (DESIGN.md, "On disk").
 
     TAKE/take.json      kind, cameras, fps, resolution, sync mode, start/stop, status, LED log
-    TAKE/frames.csv     one row per received frame: cam, seq, t_device_ns, t_host_ns, bytes, flags
+    TAKE/frames.csv     one row per received frame (manus_core.frames_csv reads it)
     TAKE/cams/CAM.mkv   one MJPEG stream per camera, frames in the order of their frames.csv rows
 
 A camera's *frame index* k is its k-th row in frames.csv and its k-th packet in CAM.mkv. Frames are
@@ -11,17 +11,16 @@ Every error names the file and what is wrong (TakeError, exit code 2 in the CLI)
 
 from __future__ import annotations
 
-import csv
 import json
 from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
-from manus_core.errors import TakeError
 
-FRAME_COLUMNS = ("cam", "seq", "t_device_ns", "t_host_ns", "bytes", "flags")
-INT_COLUMNS = ("seq", "t_device_ns", "t_host_ns", "bytes")
+from manus_core.errors import TakeError
+from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
+from manus_core.frames_csv import read_frames_csv
 
 
 class Take:
@@ -58,7 +57,7 @@ class Take:
     def frames(self) -> dict[str, np.ndarray]:
         """frames.csv as columns: cam (str), seq, t_device_ns, t_host_ns, bytes (int64), flags."""
         if self._frames is None:
-            self._frames = _read_frames_csv(self.path / "frames.csv")
+            self._frames = read_frames_csv(self.path / FRAMES_CSV)
         return self._frames
 
     def camera_frames(self, cam: str) -> dict[str, np.ndarray]:
@@ -115,7 +114,7 @@ class Take:
         """Frame index k of a camera, (H,W,3) BGR uint8."""
         count = self.frame_count(cam)
         if not 0 <= k < count:
-            raise TakeError(f"{self.path / 'frames.csv'}: camera {cam} has no frame {k} ({count} frames)")
+            raise TakeError(f"{self.path / FRAMES_CSV}: camera {cam} has no frame {k} ({count} frames)")
         # iter_frames raises TakeError when the video is shorter, so there is always one frame.
         return next(image for _, image in self.iter_frames(cam, k, k + 1))
 
@@ -130,35 +129,3 @@ def _decode(packet: np.ndarray, path: Path, k: int) -> np.ndarray:
     if image is None:
         raise TakeError(f"{path}: frame {k} is not a decodable JPEG ({packet.size} bytes)")
     return image
-
-
-def _read_frames_csv(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
-    except FileNotFoundError:
-        raise TakeError(f"{path}: missing") from None
-    if not rows:
-        raise TakeError(f"{path}: empty (no header)")
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in FRAME_COLUMNS if c not in header]
-    if missing:
-        raise TakeError(f"{path}: missing column(s) {', '.join(missing)} (header: {','.join(header)})")
-    body = rows[1:]
-    short = next((i for i, r in enumerate(body) if len(r) != len(header)), None)
-    if short is not None:
-        raise TakeError(f"{path}: line {short + 2} has {len(body[short])} fields, the header {len(header)}")
-    table = np.array(body, dtype=str).reshape(len(body), len(header))
-    out: dict[str, np.ndarray] = {}
-    for name in header:
-        column = np.char.strip(table[:, header.index(name)])
-        if name in INT_COLUMNS:
-            try:
-                out[name] = column.astype(np.int64)
-            except ValueError:
-                bad = next(i for i, v in enumerate(column) if not v.lstrip("-").isdigit())
-                raise TakeError(f"{path}: line {bad + 2}: {name} is not an integer "
-                                f"({column[bad]!r})") from None
-        else:
-            out[name] = column
-    return out

@@ -3,8 +3,10 @@ go faster than real time (so a 53-camera take renders on a laptop) or follow it 
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from typing import Protocol
 
 
@@ -61,3 +63,34 @@ class VirtualClock:
                 time.sleep(delay)
         else:
             self.advance_to(t_ns)
+
+
+def is_fast(clock: Clock) -> bool:
+    """A virtual clock at time_scale 0: time moves only when the simulation reports it."""
+    return isinstance(clock, VirtualClock) and clock.time_scale == 0
+
+
+class SimTakeClock(VirtualClock):
+    """The simulated host clock of a take, where a thread can pin its own 'now'.
+
+    At time_scale 0 the clock is the latest time any camera reported, and a camera reports its
+    frame's arrival, which in real time would lie a few ms ahead. The software-trigger thread pins
+    its time to the tick while it triggers, so a trigger is stamped with the tick it was sent on,
+    as it would be in real time.
+    """
+
+    def __init__(self, start_ns: int | None = None, time_scale: float = 0.0) -> None:
+        super().__init__(start_ns, time_scale)
+        self._pin = threading.local()
+
+    def now_ns(self) -> int:
+        pinned = getattr(self._pin, "t_ns", None)
+        return super().now_ns() if pinned is None else pinned
+
+    @contextlib.contextmanager
+    def pinned(self, t_ns: int) -> Iterator[None]:
+        self._pin.t_ns = int(t_ns)
+        try:
+            yield
+        finally:
+            self._pin.t_ns = None

@@ -1,4 +1,4 @@
-"""What is plugged in: cameras (V4L2 by-id, Aravis GigE/USB3 Vision) and serial ports.
+"""What is plugged in: the cameras every registered backend finds, and serial ports.
 
 `manus-capture rig list` prints this; the `device` of each camera is what rig.toml's
 `device` key takes.
@@ -6,20 +6,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import asdict, dataclass, field
 
+from serial.tools import list_ports
+
+from manus_core.errors import CameraError
+
+from .backends import BACKENDS
+from .cameras import FoundCamera
+
 ENTTEC_USB_IDS = {(0x0403, 0x6001)}     # FTDI FT232R, which the DMX USB Pro and its clones use
-
-
-@dataclass(frozen=True)
-class FoundCamera:
-    backend: str          # v4l2 | aravis
-    device: str           # what rig.toml's `device` takes: a /dev/v4l/by-id path, an Aravis id
-    model: str = ""
-    vendor: str = ""
-    serial: str = ""
-    address: str = ""     # /dev/videoN, IP address, USB bus id
-    protocol: str = ""    # UVC, GigEVision, USB3Vision, Fake
 
 
 @dataclass(frozen=True)
@@ -44,8 +41,6 @@ class Discovery:
 
 def list_serial_ports() -> list[FoundPort]:
     """Serial ports from pyserial, with a guess at what an FTDI or CDC-ACM device might be."""
-    from serial.tools import list_ports
-
     found = []
     for port in sorted(list_ports.comports(), key=lambda p: p.device):
         guess = ""
@@ -58,22 +53,18 @@ def list_serial_ports() -> list[FoundPort]:
     return found
 
 
-def discover(*, v4l2: bool = True, aravis: bool = True, serial: bool = True,
-             aravis_fake: bool = False) -> Discovery:
-    """Ask every backend; one that cannot be asked leaves a note instead of failing the rest."""
+def discover(*, skip: Collection[str] = (), fake: bool = False, serial: bool = True) -> Discovery:
+    """Ask every backend that can discover (but those in `skip`); `fake` also lists the fake
+    devices a backend has (Aravis's Fake_1). A backend that cannot be asked leaves a note
+    instead of failing the rest."""
     result = Discovery()
-    if v4l2:
-        from rig.cameras.v4l2 import list_v4l2_cameras
-
-        result.cameras += list_v4l2_cameras()
-    if aravis:
-        from rig.cameras import CameraError
-        from rig.cameras.aravis import list_aravis_cameras
-
+    for name, backend in BACKENDS.items():
+        if backend.discover is None or name in skip:
+            continue
         try:
-            result.cameras += list_aravis_cameras(include_fake=aravis_fake)
+            result.cameras += backend.discover(fake)
         except CameraError as exc:
-            result.notes.append(f"aravis: {exc}")
+            result.notes.append(f"{name}: {exc}")
     if serial:
         result.ports = list_serial_ports()
     return result

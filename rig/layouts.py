@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from manus_core.rig_config import CameraConfig, RigConfig, SimCameraConfig, SimConfig, StorageConfig, LedConfig
-
+from manus_core.rig_config import CameraConfig, LedConfig, RigConfig, SimCameraConfig, SimConfig, StorageConfig
 
 CENTRE_AIM = (0.0, 0.0, -0.05)     # just above the table top: where the hand works
 OVER_TABLE_AIM = (0.0, 0.0, 0.3)   # floor cameras beside the table look up past it

@@ -18,7 +18,13 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """../shared/data beside the checkout (CI has it); tests never copy from it."""
+    """../shared/data beside the checkout; tests never copy from it.
+
+    CI always has it, so there (CI set in the environment) its absence fails the run instead of
+    quietly skipping every real-data test.
+    """
     if not SHARED_DATA.is_dir():
+        if os.environ.get("CI"):
+            pytest.fail(f"CI: real test data not found at {SHARED_DATA}")
         pytest.skip(f"real test data not found at {SHARED_DATA}")
     return SHARED_DATA

@@ -13,18 +13,22 @@ from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
 import dataset_tools.annotate as annotate_module
-from dataset_tools.annotate import (AnnotateError, AnnotateOptions, annotate, annotate_arrays,
-                                    frame_groups_from_host_times)
-from manus_core.dataset import FLAGS, read_dataset
+from dataset_tools.annotate import AnnotateOptions, annotate, annotate_arrays
 from dataset_tools.hand.bones import estimate_bone_lengths, load_subject
-from manus_core.skeleton import rodrigues
 from dataset_tools.keypoints.keypoints2d import CameraKeypoints, TakeKeypoints, write_keypoints_h5
 from dataset_tools.simulated_detector import SimulatedDetector
-from manus_core.take import Take
+from dataset_tools.sync import frame_groups
 from dataset_tools.triangulation import triangulate_frames
 from manus_capture.cli import cli
+from manus_core.dataset import FLAGS, read_dataset
+from manus_core.errors import AnnotateError, SessionError
+from manus_core.frames_csv import HEADER, format_row
+from manus_core.ground_truth import GroundTruth, TruthCameras, TruthFrames, TruthHand, write_record
+from manus_core.rig_config import load_rig
+from manus_core.session import open_session
+from manus_core.skeleton import rodrigues
+from manus_core.take import Take
 from rig.layouts import make_rig
-from manus_core.session import SessionError, open_session
 from rig.sim.cube import true_cameras
 from rig.sim.hand import make_hand
 from rig.sim.motion import make_motion
@@ -90,19 +94,15 @@ def write_sim_take(folder: Path, rig, hand, motion, fps: float, n_frames: int, k
     angles = motion.hand_angles((ticks - ticks[0]) / 1e9)
     joints = hand.skeleton.forward(angles)
     with h5py.File(folder / "ground_truth.h5", "w") as f:
-        f["cameras/ids"] = np.array(rig.ids, dtype=h5py.string_dtype())
-        for name in ("K", "dist", "R", "t", "size"):
-            f[f"cameras/{name}"] = getattr(rig, name)
-        f["frames/tick_ns"] = np.rint(ticks).astype(np.int64)
-        f["frames/exposure_mid_ns"] = exposure
-        f["frames/dropped"] = dropped
-        f["hand/joint_angles"] = angles
-        f["hand/joints3d"] = joints
-    rows = ["cam,seq,t_device_ns,t_host_ns,bytes,flags"]
+        write_record(f, TruthCameras(rig.ids, rig.K, rig.dist, rig.R, rig.t, rig.size))
+        write_record(f, TruthFrames(np.rint(ticks).astype(np.int64), exposure, dropped))
+        write_record(f, TruthHand(angles, joints, hand.skeleton.bone_lengths))
+    rows = [HEADER + "\n"]
     for c, cam in enumerate(rig.ids):
         for k in np.flatnonzero(~dropped[c]):
-            rows.append(f"{cam},{k},{exposure[c, k] + 777},{exposure[c, k] + int(2e6 + rng.exponential(3e5))},9000,")
-    (folder / "frames.csv").write_text("\n".join(rows) + "\n")
+            rows.append(format_row(cam, k, exposure[c, k] + 777, exposure[c, k] + int(2e6 + rng.exponential(3e5)),
+                                   9000, ""))
+    (folder / "frames.csv").write_text("".join(rows))
     (folder / "take.json").write_text(json.dumps({"kind": kind, "cameras": list(rig.ids), "fps": fps,
                                                   "status": "complete"}))
     return joints
@@ -228,7 +228,8 @@ def test_keypoint_file_and_given_frame_groups(session, tmp_path):
     cams = {cam: CameraKeypoints(det[:, c].astype(np.float32), np.zeros((30, 4), np.float32),
                                  np.zeros(30, np.float32)) for c, cam in enumerate(rig.ids)}
     write_keypoints_h5(take_dir / "keypoints2d.h5", TakeKeypoints(cams, "simulated", "-", "test"))
-    frame_ns, frame_index = frame_groups_from_host_times(take)
+    found = frame_groups(take)
+    frame_ns, frame_index = found.frame_ns, found.frame_index
     groups = {str(take_dir): (frame_ns[5:], frame_index[5:])}
     summary = annotate([take_dir], session["root"] / "calib", tmp_path / "D.h5", bones=session["hand"].skeleton.bone_lengths,
                        groups=groups, options=AnnotateOptions(keypoints="file"))
@@ -239,30 +240,6 @@ def test_keypoint_file_and_given_frame_groups(session, tmp_path):
     np.testing.assert_array_equal(ann.frame_ns, frame_ns[5:])
     np.testing.assert_allclose(ann.keypoints2d, det[5:].astype(np.float32), equal_nan=True)
     assert np.nanmean(np.linalg.norm(ann.keypoints3d - joints[5:], axis=-1)) < 2e-3
-
-
-def test_host_time_grouping_puts_each_tick_in_one_group(tmp_path):
-    """Free-running cameras with phases over 6 ms, 1.5-3 ms latency and jitter, drops."""
-    rng = np.random.default_rng(3)
-    period = 1e9 / 120
-    rows = ["cam,seq,t_device_ns,t_host_ns,bytes,flags"]
-    expected = np.full((100, 4), -1)
-    for c in range(4):
-        phase, latency = rng.uniform(0, 6e6), rng.uniform(1.5e6, 3e6)
-        index = 0
-        for k in range(100):
-            if (c, k) in {(1, 10), (2, 50), (2, 51)}:
-                continue
-            host = 5 * 10**9 + k * period + phase + latency + rng.exponential(2e5)
-            rows.append(f"c{c},{k},0,{int(host)},1,")
-            expected[k, c] = index
-            index += 1
-    (tmp_path / "frames.csv").write_text("\n".join(rows) + "\n")
-    (tmp_path / "take.json").write_text(json.dumps({"kind": "grasp", "cameras": ["c0", "c1", "c2", "c3"],
-                                                    "fps": 120}))
-    frame_ns, frame_index = frame_groups_from_host_times(Take(tmp_path))
-    np.testing.assert_array_equal(frame_index, expected)
-    np.testing.assert_allclose(np.diff(frame_ns), period, atol=1)
 
 
 def test_bad_input_gives_clear_errors_or_marked_frames(session, inline_result, tmp_path):
@@ -341,12 +318,8 @@ def test_cli_annotate_then_stats(session, tmp_path):
 
 
 def test_recorded_sim_take_end_to_end(tmp_path):
-    """rig init -> record -> annotate (sync frame groups, simulated detector) -> close to the truth."""
-    import h5py
-    from click.testing import CliRunner
-
-    from manus_capture.cli import cli
-
+    """rig init -> record -> sync-report -> annotate (the report's frame groups, simulated detector)
+    -> close to the truth."""
     runner = CliRunner()
     rig_file = tmp_path / "rig.toml"
     # triggered cameras expose at the tick, so the ticks' true joints are what every view saw
@@ -355,21 +328,18 @@ def test_recorded_sim_take_end_to_end(tmp_path):
     result = runner.invoke(cli, ["record", "--rig", str(rig_file), "--session", str(tmp_path / "S"), "--take", "g",
                                  "--kind", "grasp", "--duration", "0.3"])
     assert result.exit_code == 0, result.output
-    from manus_core.rig_config import load_rig
-    from rig.sim.cube import true_cameras
-
+    take = tmp_path / "S" / "g"
+    assert runner.invoke(cli, ["sync-report", str(take)]).exit_code == 0
     true_cameras(load_rig(rig_file)).save(tmp_path / "cameras.json")
     out = tmp_path / "D.h5"
-    result = runner.invoke(cli, ["annotate", str(tmp_path / "S" / "g"), "--calib", str(tmp_path / "cameras.json"),
+    result = runner.invoke(cli, ["annotate", str(take), "--calib", str(tmp_path / "cameras.json"),
                                  "-o", str(out)])
     assert result.exit_code == 0, result.output
-    with h5py.File(out) as f, h5py.File(tmp_path / "S" / "g" / "ground_truth.h5") as gt:
-        names = []
-        f.visit(lambda n: names.append(n) if n.endswith("frame_ns") else None)
-        group = f[names[0].rsplit("/", 1)[0]]
-        assert group.attrs["frame_groups"].startswith("sync")
-        tick = np.round((group["frame_ns"][()] - gt.attrs["t0_ns"]) * 120 / 1e9).astype(int)
-        truth = gt["hand/joints3d"][()][tick]
-        error = np.linalg.norm(group["keypoints3d"][()] - truth, axis=-1)
+    gt = GroundTruth.of_take(take)
+    ann = read_dataset(out)["S/g"]
+    assert ann.attrs["frame_groups"] == "sync (fitted device clocks), frame_groups.npz of the sync report"
+    np.testing.assert_array_equal(ann.frame_index, frame_groups(take).frame_index)
+    tick = gt.tick_at(ann.frame_ns)
+    error = np.linalg.norm(ann.keypoints3d - gt.hand.joints3d[tick], axis=-1)
     # 2 px of detector noise is ~1 cm per view at 320x180 and 1 m; 8 views bring it to ~6 mm (measured 5.9)
     assert len(tick) >= 34 and np.nanmedian(error) < 0.008, np.nanmedian(error)

@@ -16,9 +16,9 @@ import pytest
 from test_keypoints_take import make_take
 
 from dataset_tools.annotate import AnnotateOptions, annotate
-from manus_core.dataset import read_dataset
 from dataset_tools.keypoints.install import bundle_dir, installed_manifest
 from dataset_tools.keypoints.keypoints2d import read_keypoints_h5
+from manus_core.dataset import read_dataset
 from rig.layouts import make_rig
 from rig.sim.cube import SimulatedCube
 

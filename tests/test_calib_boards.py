@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from dataset_tools.calibration.boards import BoardError, board_from_dict, load_board, load_tags
+from dataset_tools.calibration.boards import board_from_dict, load_board, load_tags
+from manus_core.errors import BoardError
 
 
 @pytest.mark.parametrize("text, message", [

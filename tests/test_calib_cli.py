@@ -88,7 +88,7 @@ def write_take(folder, shared_data, frames: int = 20) -> None:
                 continue
             writer.write(image)
             # host clocks: 6 fps ticks, each camera a few ms late, like free-running webcams
-            rows.append([f"c{c}", len(rows) % frames, 0, 1_000_000_000 + (k // 3) * 166_666_667 + 3_000_000 * c, 0, 0])
+            rows.append([f"c{c}", k // 3, 0, 1_000_000_000 + (k // 3) * 166_666_667 + 3_000_000 * c, 0, 0])
         writer.release()
     (folder / "take.json").write_text(json.dumps({"kind": "calibration", "cameras": [f"c{c}" for c in range(4)],
                                                   "fps": 6.0, "status": "complete"}))

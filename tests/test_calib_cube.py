@@ -18,15 +18,15 @@ import json
 import numpy as np
 import pytest
 
-pytest.importorskip("rig.sim.render")
-
-from dataset_tools.calibration.boards import tags_from_dict  # noqa: E402
-from dataset_tools.calibration.extrinsics import rotation_angle_deg  # noqa: E402
-from dataset_tools.calibration.rig import calibrate_rig  # noqa: E402
-from rig.layouts import make_rig  # noqa: E402
-from rig.sim.cube import true_cameras  # noqa: E402
-from rig.sim.render import Renderer  # noqa: E402
-from rig.sim.world import World  # noqa: E402
+from dataset_tools.calibration.boards import tags_from_dict
+from dataset_tools.calibration.formats import load_cameras
+from dataset_tools.calibration.rig import calibrate_rig
+from manus_core.ground_truth import GroundTruth
+from manus_core.rotations import rotation_angle_deg
+from rig.layouts import make_rig
+from rig.sim.cube import true_cameras
+from rig.sim.render import Renderer
+from rig.sim.world import World
 
 INTO_THE_TABLE = ("z-01", "z-10", "z-12", "z-21")
 
@@ -95,11 +95,8 @@ def test_cameras_without_tags_are_placed_from_the_scene(cube):
 # --- a recorded take, through the command line ---------------------------------------------------
 
 def _ground_truth(take_dir):
-    import h5py
-
-    with h5py.File(take_dir / "ground_truth.h5") as f:
-        ids = tuple(x.decode() if isinstance(x, bytes) else str(x) for x in f["cameras/ids"][()])
-        return ids, f["cameras/K"][()], f["cameras/dist"][()], f["cameras/R"][()], f["cameras/t"][()]
+    cams = GroundTruth.of_take(take_dir).cameras
+    return cams.ids, cams.K, cams.dist, cams.R, cams.t
 
 
 # the centre of each wall, two top and two bottom corners of the cube: each sees two whole tags or more
@@ -117,13 +114,13 @@ def recorded(tmp_path_factory):
     calibrated by `manus-capture calibrate rig` with the true intrinsics (no poses) as --intrinsics."""
     from click.testing import CliRunner
 
-    from manus_core.cameras import CameraRig
     from manus_capture.cli import cli
-    from rig.recorder import record_take
+    from manus_core.cameras import CameraRig
+    from rig.record import record_take
 
     root = tmp_path_factory.mktemp("calib-take")
     config = recording_rig()
-    record_take(config, root / "session", "calib", "calibration", 0.05, progress=False)
+    record_take(config, root / "session", "calib", "calibration", 0.05)
     take = root / "session" / "calib"
     ids, K, dist, R, t = _ground_truth(take)
     CameraRig(ids, K, dist, np.tile(np.eye(3), (len(ids), 1, 1)), np.zeros((len(ids), 3)),
@@ -135,8 +132,6 @@ def recorded(tmp_path_factory):
 
 
 def test_calibrate_rig_command_on_a_recorded_take(recorded):
-    from dataset_tools.calibration.formats import load_cameras
-
     res, out, truth = recorded
     assert res.exit_code == 0, res.output
     assert "wrote" in res.output and "12 cameras" in res.output and "complete" in res.output
@@ -154,8 +149,6 @@ def test_calibrate_rig_command_on_a_recorded_take(recorded):
 
 @pytest.mark.parametrize("export", ["colmap", "cameras.yml", "easymocap", "optim_params.txt"])
 def test_every_export_of_the_take_round_trips(recorded, export):
-    from dataset_tools.calibration.formats import load_cameras
-
     res, out, _ = recorded
     assert res.exit_code == 0, res.output
     ref = load_cameras(out / "cameras.json")

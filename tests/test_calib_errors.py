@@ -7,13 +7,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dataset_tools.calibration.boards import BoardError, board_from_dict, tags_from_dict
-from dataset_tools.calibration.detect import DetectionError, FrameSource, detect_source, read_frames
-from dataset_tools.calibration.extrinsics import ExtrinsicsError, calibrate_board_rig, calibrate_tag_rig
-from dataset_tools.calibration.detect import Detection
-from dataset_tools.calibration.boards import CalibrationError
+from dataset_tools.calibration.board_rig import calibrate_board_rig
+from dataset_tools.calibration.boards import board_from_dict, tags_from_dict
+from dataset_tools.calibration.detect import Detection, detect_source
+from dataset_tools.calibration.frames import FrameSource, read_frames
 from dataset_tools.calibration.rig import calibrate_rig
+from dataset_tools.calibration.tag_rig import calibrate_tag_rig
 from manus_core.cameras import CameraRig
+from manus_core.errors import BoardError, CalibrationError, DetectionError, ExtrinsicsError
 
 CHARUCO = board_from_dict({"type": "charuco", "cols": 4, "rows": 5, "square": 0.054, "marker": 0.0405,
                            "dictionary": "DICT_4X4_1000", "inverted": True})

@@ -5,8 +5,10 @@ from __future__ import annotations
 import pytest
 
 from dataset_tools.calibration.boards import board_from_dict
-from dataset_tools.calibration.detect import FrameSource, detect_source
-from dataset_tools.calibration.intrinsics import IntrinsicsError, calibrate_intrinsics
+from dataset_tools.calibration.detect import detect_source
+from dataset_tools.calibration.frames import FrameSource
+from dataset_tools.calibration.intrinsics import calibrate_intrinsics
+from manus_core.errors import IntrinsicsError
 
 PUBLISHED_FX = 535.9157  # left_intrinsics.yml, 13 views, RMS 0.393 px
 

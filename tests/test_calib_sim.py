@@ -11,15 +11,13 @@ import json
 import numpy as np
 import pytest
 
-pytest.importorskip("rig.sim.render")
-
-from dataset_tools.calibration.boards import tags_from_dict  # noqa: E402
-from dataset_tools.calibration.extrinsics import rotation_angle_deg  # noqa: E402
-from dataset_tools.calibration.rig import calibrate_rig  # noqa: E402
-from rig.layouts import make_rig  # noqa: E402
-from rig.sim.cube import true_cameras  # noqa: E402
-from rig.sim.render import Renderer  # noqa: E402
-from rig.sim.world import World  # noqa: E402
+from dataset_tools.calibration.boards import tags_from_dict
+from dataset_tools.calibration.rig import calibrate_rig
+from manus_core.rotations import rotation_angle_deg
+from rig.layouts import make_rig
+from rig.sim.cube import true_cameras
+from rig.sim.render import Renderer
+from rig.sim.world import World
 
 
 @pytest.fixture(scope="module")

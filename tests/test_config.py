@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -10,7 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from manus_capture.cli import cli
-from manus_core.rig_config import ConfigError, load_rig, rig_to_toml
+from manus_core.errors import ConfigError
+from manus_core.rig_config import load_rig, rig_to_toml
 from rig.layouts import make_rig
 
 GOOD = """
@@ -73,6 +75,29 @@ def test_cli_check_reports_one_line_and_exit_2(tmp_path):
     assert result.exit_code == 2
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "cameras[1].id: duplicate camera id 'left'" in lines[0]
+
+
+SIM_RIG = rig_to_toml(make_rig("cube53", cameras=2, resolution=(64, 36)))
+
+
+@pytest.mark.parametrize("text, key, words", [
+    (GOOD.replace('name = "bench"', 'name = "bench"\nfps = -30'), "fps", "must be > 0, got -30"),
+    (GOOD.replace('name = "bench"', 'name = "bench"\nfps = inf'), "fps", "expected a finite number, got inf"),
+    (GOOD.replace('name = "bench"', 'name = "bench"\nfps = nan'), "fps", "expected a finite number, got nan"),
+    (GOOD.replace("width = 1920", "width = 1000000000"), "cameras[1].width", "must be <= 16384"),
+    (GOOD.replace('port = "/dev/ttyACM0"', 'port = "/dev/ttyACM0"\nlevel = 5'), "leds.level", "must be in [0, 1]"),
+    (GOOD + "[storage]\njpeg_quality = 900\n", "storage.jpeg_quality", "must be an integer in 1..100"),
+    (GOOD + "[storage]\nmin_free_gb = -5\n", "storage.min_free_gb", "must be >= 0"),
+    (GOOD + "[sim]\nsupersample = -1\n", "sim.supersample", "must be >= 1"),
+    (SIM_RIG.replace("drop_rate = 0.002", "drop_rate = 2.0", 1), "cameras[0].sim.drop_rate", "must be in [0, 1)"),
+    (re.sub(r"hfov_deg = [\d.]+", "hfov_deg = 0", SIM_RIG, count=1), "cameras[0].sim.hfov_deg", "must be in (0, 180)"),
+])
+def test_cli_check_rejects_values_out_of_range(tmp_path, text, key, words):
+    path = write(tmp_path, text)
+    result = CliRunner().invoke(cli, ["rig", "check", str(path)])
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and f"{path}: {key}: {words}" in lines[0], result.output
 
 
 def test_cli_check_summary(tmp_path):

@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from manus_capture.contacts import contact_value, hand_object_contacts, render_values, surface_value
-from manus_capture.evaluate import (EvaluateError, canonical_pose, mask_scores, pick_views, score_contacts,
-                                    spread_cameras)
+from manus_capture.evaluate import canonical_pose, mask_scores, pick_views, score_contacts, spread_cameras
 from manus_capture.template import PointHand, capsule_template
+from manus_core.errors import EvaluateError
 from rig.layouts import make_rig
 from rig.sim.cube import SimulatedCube
 

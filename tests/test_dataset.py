@@ -8,12 +8,21 @@ import h5py
 import numpy as np
 import pytest
 
-from manus_core.dataset import FLAGS, DatasetError, DatasetWriter, TakeAnnotation, read_dataset
-from dataset_tools.hand.bones import (BONE_NAMES, BoneLengthError, estimate_bone_lengths, load_subject,
-                                      save_subject)
+from dataset_tools.hand.bones import BONE_NAMES, estimate_bone_lengths, load_subject, save_subject
+from dataset_tools.simulated_detector import SimulatedDetector, joints_at, keypoints_for_take, true_rig
+from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, read_dataset
+from manus_core.errors import BoneLengthError, DatasetError, GroundTruthError, SimulatedDetectorError
+from manus_core.ground_truth import (
+    LABEL_FRAMES,
+    LABEL_IMAGE,
+    LABEL_OBJECT,
+    GroundTruth,
+    TruthCameras,
+    TruthFrames,
+    TruthHand,
+    write_record,
+)
 from manus_core.skeleton import BONES, DEFAULT_BONE_LENGTHS, LOWER, UPPER, HandSkeleton
-from dataset_tools.simulated_detector import (SimulatedDetector, SimulatedDetectorError, joints_at, keypoints_for_take,
-                                             read_ground_truth, true_rig)
 from rig.layouts import make_rig
 from rig.sim.cube import true_cameras
 
@@ -239,9 +248,8 @@ def test_simulated_detector_occlusion_models(cube12):
 def test_joints_are_interpolated_to_exposure_times():
     ticks = 10**9 + np.arange(5) * 10_000_000
     joints = np.arange(5, dtype=np.float64)[:, None, None] * np.ones((5, 21, 3))
-    gt = {"frames/tick_ns": ticks, "hand/joints3d": joints}
     t = np.array([[ticks[1] + 2_500_000, np.nan], [ticks[3], ticks[4] + 10**7]])
-    out = joints_at(gt, t)
+    out = joints_at(ticks, joints, t)
     assert out[0, 0, 0, 0] == pytest.approx(1.25) and np.isnan(out[0, 1]).all()
     assert out[1, 0, 0, 0] == 3.0 and out[1, 1, 0, 0] == 4.0
 
@@ -255,27 +263,50 @@ def test_keypoints_of_a_simulated_take_follow_exposures_drops_and_labels(cube12,
     exposure = ticks[None] + rng.integers(0, 6_000_000, n_c)[:, None]
     dropped = np.zeros((n_c, n_t), bool)
     dropped[1, 3] = True
-    joints = HandSkeleton().forward(np.zeros(26))[None] + np.arange(n_t)[:, None, None] * np.array([1e-3, 0, 0])
+    angles = np.zeros((n_t, 26))
+    angles[:, 3] = np.arange(n_t) * 1e-3                   # the wrist moves 1 mm along x per tick
+    skeleton = HandSkeleton()
+    joints = skeleton.forward(angles)
     labels = np.zeros((n_c, 1, 360, 640), np.uint8)
-    labels[0] = 2                                          # camera 0, tick 4: the object fills the view
+    labels[0] = LABEL_OBJECT                                  # camera 0, tick 4: the object fills the view
     path = tmp_path / "ground_truth.h5"
     with h5py.File(path, "w") as f:
-        f["cameras/ids"] = np.array(cube12.ids, dtype=h5py.string_dtype())
-        for name in ("K", "dist", "R", "t", "size"):
-            f[f"cameras/{name}"] = getattr(cube12, name)
-        f["frames/tick_ns"], f["frames/exposure_mid_ns"], f["frames/dropped"] = ticks, exposure, dropped
-        f["hand/joints3d"] = joints
-        f["labels/frames"], f["labels/image"] = np.array([4]), labels
-    gt = read_ground_truth(path)
+        write_record(f, TruthCameras(cube12.ids, cube12.K, cube12.dist, cube12.R, cube12.t, cube12.size))
+        write_record(f, TruthFrames(ticks, exposure, dropped))
+        f[LABEL_FRAMES], f[LABEL_IMAGE] = np.array([4]), labels
+    gt = GroundTruth(path)
+    with pytest.raises(GroundTruthError, match="no hand group"):
+        gt.hand
+    with h5py.File(path, "a") as f:
+        write_record(f, TruthHand(angles, joints, skeleton.bone_lengths))
+    gt = GroundTruth(path)
+    assert gt.cameras.ids == cube12.ids and gt.label_frames.tolist() == [4]
     host = (exposure.T + 2_500_000).astype(np.float64)     # arrivals 2.5 ms after the exposures
     host[3, 1] = np.nan                                    # the dropped frame never arrived
     kp = keypoints_for_take(gt, true_rig(gt, cube12.ids), host,
                             SimulatedDetector(noise_px=0, outlier_rate=0, self_occlusion=False))
     assert (kp[4, 0, :, 2] == 0).all() and (kp[4, 1:, :, 2] > 0).all() and (kp[5, 0, :, 2] > 0).all()
     assert (kp[3, 1, :, 2] == 0).all() and np.isnan(kp[3, 1, :, :2]).all()
-    at_exposure = joints_at(gt, exposure.T.astype(np.float64))               # (T,C,21,3)
+    at_exposure = joints_at(ticks, joints, exposure.T.astype(np.float64))   # (T,C,21,3)
     r, c = 7, 5
     np.testing.assert_allclose(kp[r, c, :, :2], cube12.subset([cube12.ids[c]]).project(at_exposure[r, c])[0],
                                atol=1e-6)
     shift = (exposure[c, r] - ticks[r]) / 10_000_000 * 1e-3
     np.testing.assert_allclose(at_exposure[r, c] - joints[r], np.broadcast_to([shift, 0, 0], (21, 3)), atol=1e-12)
+
+
+def test_ground_truth_errors_name_the_file_and_the_key(tmp_path):
+    with pytest.raises(GroundTruthError, match=r"ground_truth.h5: missing \(only simulated takes"):
+        GroundTruth.of_take(tmp_path)
+    path = tmp_path / "ground_truth.h5"
+    path.write_text("not HDF5")
+    with pytest.raises(GroundTruthError, match="ground_truth.h5: cannot be read as HDF5"):
+        GroundTruth(path).frames
+    with h5py.File(path, "w") as f:
+        f["frames/tick_ns"] = np.arange(3)
+    gt = GroundTruth(path)
+    with pytest.raises(GroundTruthError, match="ground_truth.h5: missing frames/exposure_mid_ns"):
+        gt.frames
+    with pytest.raises(GroundTruthError, match="ground_truth.h5: missing labels/image"):
+        gt.labels()
+    assert gt.label_frames.size == 0 and gt.has(TruthFrames) and not gt.has(TruthHand)

@@ -5,11 +5,19 @@ from __future__ import annotations
 
 import json
 
+import h5py
+import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
+from manus_capture import api
 from manus_capture.cli import cli
 from manus_capture.splat.checkpoint import load_checkpoint
+from manus_capture.splat.hand import HandGaussians
+from manus_core.ground_truth import GroundTruth
+from manus_core.rig_config import rig_to_toml
+from rig.sim.subject import with_sim_subject
 
 ARGS = ["--cameras", "12", "--resolution", "320x180", "--fps", "20", "--views", "3,6,all", "--iterations", "300"]
 
@@ -79,8 +87,6 @@ def test_gaussian_hand_beats_the_template(demo):
 def test_commands_on_the_demo_session(demo, tmp_path):
     """reconstruct hand (masks from segment), contacts and evaluate through the command line on
     the demo's session: the same figures as the demo's own stages, from the files alone."""
-    import h5py
-
     out, summary, _ = demo
     runner = CliRunner()
     session, dataset = out / "session", tmp_path / "D.h5"
@@ -117,3 +123,109 @@ def test_commands_on_the_demo_session(demo, tmp_path):
                                  str(out / "models" / "hand.safetensors"), "--object",
                                  str(out / "models" / "object.safetensors")])
     assert result.exit_code == 2 and "session/nope" in result.output
+
+
+class Recorded(api.Progress):
+    """A progress callable that remembers what it was told."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, int, int | None]] = []
+
+    def __call__(self, stage: str, done: int, total: int | None) -> None:
+        self.calls.append((stage, done, total))
+
+
+def test_api_record_and_sync(tmp_path):
+    """record_take and sync_take on a small rig of its own, scored on the simulator's drops."""
+    rig = with_sim_subject(api.make_rig("cube53", cameras=4, resolution=(160, 90), fps=20, seed=5), obj="box")
+    (tmp_path / "rig.toml").write_text(rig_to_toml(rig))
+    rig = api.load_rig(tmp_path / "rig.toml")
+    assert isinstance(rig, api.RigConfig)
+    progress = Recorded()
+    result = api.record_take(rig, tmp_path / "S", "t", "grasp", 0.3, api.RecordOptions(use_leds=False),
+                             progress=progress)
+    assert isinstance(result, api.TakeResult) and result.status == "complete", result.reason
+    assert progress.calls and progress.calls[-1][0].startswith("rec")
+    take = api.Take(result.path)
+    report = api.sync_take(take.path, optical=False)
+    dropped = GroundTruth.of_take(take.path).frames.dropped.sum()
+    assert sum(c["frames_dropped"] for c in report["cameras"].values()) == dropped
+    groups = api.frame_groups(take)
+    assert isinstance(groups, api.TakeGroups) and groups.path is not None  # the report's own groups
+    assert groups.frame_index.shape == (len(groups.frame_ns), 4)
+    api.silent("rec", 0, None)  # the default progress takes the same arguments and says nothing
+
+
+def test_api_calibrate_annotate_segment(demo, tmp_path):
+    """The offline stages through the api on the demo's takes, against the simulator's truth."""
+    out, _, _ = demo
+    session = out / "session"
+    truth = GroundTruth.of_take(session / "00-calibration").cameras.rig()
+    # the lenses as a lab would have them from an intrinsics session; the poses come from the tags
+    lens = api.CameraRig(truth.ids, truth.K, truth.dist, np.tile(np.eye(3), (len(truth), 1, 1)),
+                         np.zeros((len(truth), 3)), truth.size)
+    calib = api.calibrate_rig(take=session / "00-calibration", tags=session / "tags.json", method="tags",
+                              intrinsics=lens, output=tmp_path / "calib")
+    assert isinstance(calib, api.RigCalibration) and not calib.partial
+    rig = api.load_cameras(tmp_path / "calib")
+    assert np.linalg.norm(rig.subset(truth.ids).centers - truth.centers, axis=1).max() < 0.01
+    api.save_cameras(rig, tmp_path / "copy.json")
+    dataset = tmp_path / "D.h5"
+    canonical = session / "04-canonical1"
+    summary = api.annotate([canonical], tmp_path / "calib", dataset, api.AnnotateOptions(keypoints="simulated"))
+    assert isinstance(summary, api.AnnotateSummary) and not summary.failed
+    data = api.read_dataset(dataset)
+    ann = data[api.take_key(canonical)]
+    assert isinstance(data, api.Dataset) and isinstance(ann, api.TakeAnnotation)
+    hand = GroundTruth.of_take(canonical).hand
+    tick = np.clip(GroundTruth.of_take(canonical).tick_at(ann.frame_ns), 0, len(hand.joints3d) - 1)
+    assert np.nanmedian(np.linalg.norm(ann.fitted_joints() - hand.joints3d[tick], axis=-1)) < 0.008
+    seg = api.segment_take(canonical, rig, session / "00-calibration", session / "02-object")
+    assert isinstance(seg, api.Segmentation) and seg.paint is not None and seg.paint.any()
+    api.write_masks(dataset, api.take_key(canonical), seg, {})
+    assert api.read_dataset(dataset)[api.take_key(canonical)].attrs["mask_cameras"] == list(seg.cameras)
+
+
+def test_api_keypoints_on_a_take(demo):
+    out, _, _ = demo
+    take = api.Take(out / "session" / "04-canonical1")
+    detector = api.hand_keypoint_detector("mediapipe-hand")
+    assert isinstance(detector, api.Detector)
+    progress = Recorded()
+    found = api.detect_take(take, detector, cameras=take.cameras[:2], progress=progress)
+    assert all(isinstance(k, api.CameraKeypoints) for k in found.values())
+    assert sum(len(k.keypoints) for k in found.values()) == sum(take.frame_count(c) for c in take.cameras[:2])
+    assert progress.calls[-1][1] == progress.calls[-1][2]
+
+
+def test_api_reconstruct_contacts_evaluate(demo, tmp_path):
+    """Models on four cameras through ModelInputs, then contacts and scores with the demo's models."""
+    out, summary, _ = demo
+    session, rig = out / "session", api.load_cameras(out / "calib")
+    inputs = api.ModelInputs.prepare(rig, out / "DATASET.h5", session / "01-hand", session / "02-object",
+                                     session / "00-calibration", poses=4, object_iterations=40, hand_iterations=40)
+    models = inputs.train(np.arange(0, len(rig), 3), evaluate=True)
+    assert isinstance(models, api.TrainedModels) and models.metrics["hand_gaussians"] == len(models.hand)
+    api.save_checkpoint(tmp_path / "object.safetensors", models.object, kind="object")
+    assert torch.equal(api.load_checkpoint(tmp_path / "object.safetensors")[0].means, models.object.means)
+    hand = HandGaussians.from_checkpoint(*api.load_checkpoint(out / "models" / "hand.safetensors")[:2])
+    obj = api.load_checkpoint(out / "models" / "object.safetensors")[0]
+    data = api.read_dataset(out / "DATASET.h5")
+    angles = data["session/03-grasp1"].joint_angles
+    maps = api.model_contacts(hand, angles, obj)
+    assert isinstance(maps, api.ContactMaps)
+    assert int((maps.accumulated > 0.5).sum()) == stage(summary, "contacts")["hand_gaussians_in_contact"]
+    dataset = tmp_path / "D.h5"
+    dataset.write_bytes((out / "DATASET.h5").read_bytes())
+    api.write_contacts(dataset, "session/03-grasp1", maps, {})
+    pose = api.canonical_pose(data["session/04-canonical1"].joint_angles)
+    with h5py.File(out / "DATASET.h5") as f:
+        paint = f["session/04-canonical1/paint/masks"][()]
+        order = [list(f["session/04-canonical1"].attrs["mask_cameras"]).index(c) for c in rig.ids]
+    views = api.pick_views(paint[order], 10)
+    scores, _ = api.score_contacts(hand, pose, maps.accumulated, rig, paint[order], views)
+    assert isinstance(scores, api.Scores) and abs(scores.mean_iou - summary["contact_iou"]) < 1e-6
+    template = api.capsule_template(data["session/03-grasp1"].bone_lengths)
+    baseline, _ = api.score_contacts(template, pose, api.model_contacts(template, angles, obj).accumulated, rig,
+                                     paint[order], views)
+    assert abs(baseline.mean_iou - summary["baseline_iou"]) < 1e-6

@@ -7,10 +7,12 @@ import tomllib
 
 import cv2
 import numpy as np
+import pycolmap
 import pytest
 
 from dataset_tools.calibration.formats import READABLE, WRITABLE, detect_format, load_cameras, save_cameras
-from manus_core.cameras import CalibrationFileError, CameraRig
+from manus_core.cameras import CameraRig
+from manus_core.errors import CalibrationFileError
 
 
 def _random_rig(n: int = 5, seed: int = 1, k3: bool = True) -> CameraRig:
@@ -86,7 +88,6 @@ def test_formats_refuse_what_they_cannot_hold(tmp_path):
 def test_colmap_export_projects_like_pycolmap(tmp_path):
     """pycolmap reads the exported model and projects every point where we do, 0.5 px apart
     (COLMAP's pixel origin is the corner of the first pixel, OpenCV's its centre)."""
-    pycolmap = pytest.importorskip("pycolmap")
     rig = _random_rig()
     save_cameras(rig, tmp_path, "colmap")
     rec = pycolmap.Reconstruction(str(tmp_path))
@@ -102,7 +103,6 @@ def test_colmap_export_projects_like_pycolmap(tmp_path):
 
 def _pycolmap_rig_model(folder, frames: int):
     """A two-camera rig written by pycolmap 4 (rigs.txt, frames.txt), moving between frames."""
-    pycolmap = pytest.importorskip("pycolmap")
     rec = pycolmap.Reconstruction()
     for cid in (1, 2):
         rec.add_camera(pycolmap.Camera(model="OPENCV", width=640, height=480, camera_id=cid,

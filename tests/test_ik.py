@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dataset_tools.hand.ik import IKError, _HandModel, fit_hand, unwrap_rotations, wrap_rotations
+from dataset_tools.hand.ik import _HandModel, fit_hand, unwrap_rotations, wrap_rotations
+from manus_core.errors import IKError
 from manus_core.skeleton import FINGERTIPS, LOWER, UPPER, HandSkeleton, rodrigues
 from rig.sim.hand import make_hand
 from rig.sim.motion import make_motion

@@ -10,10 +10,11 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from manus_core.cameras import CameraRig
-from dataset_tools.keypoints import ModelError, ModelNotInstalledError, hand_keypoint_detector
 from dataset_tools.keypoints import boxes as bx
+from dataset_tools.keypoints import hand_keypoint_detector
 from dataset_tools.keypoints.decoding import decode_heatmaps, decode_simcc
+from manus_core.cameras import CameraRig
+from manus_core.errors import ModelError, ModelNotInstalledError
 
 H, W = 64, 48          # network input (height, width) of the tiny graphs
 K = 21

@@ -26,8 +26,8 @@ from test_keypoints_take import make_take
 
 from dataset_tools.keypoints import hand_keypoint_detector
 from dataset_tools.keypoints.install import bundle_dir, installed_manifest
-from manus_core.take import Take
 from manus_capture.cli import cli
+from manus_core.take import Take
 
 # InterHand2.6M orders each hand tip-to-base per finger (thumb4..thumb1, ..., pinky4..pinky1), wrist last.
 INTERHAND_TO_MEDIAPIPE = [20, 3, 2, 1, 0, 7, 6, 5, 4, 11, 10, 9, 8, 15, 14, 13, 12, 19, 18, 17, 16]

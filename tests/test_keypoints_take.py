@@ -11,7 +11,9 @@ import cv2
 import numpy as np
 import pytest
 
-from manus_core.take import Take, TakeError
+from dataset_tools.keypoints.keypoints2d import detect_take
+from manus_core.errors import TakeError
+from manus_core.take import Take
 
 FPS = 120
 
@@ -126,3 +128,21 @@ def test_errors_name_the_file(take, tmp_path: Path) -> None:
     (path / "take.json").write_text("{not json")
     with pytest.raises(TakeError, match="take.json: not valid JSON"):
         Take(path)
+
+
+class _BoxDetector:
+    """A stand-in for the keypoint detector: every joint at the centre of its box, confidence 1."""
+
+    def detect_many(self, images, boxes, angles):
+        return [np.tile(np.r_[(b[0, :2] + b[0, 2:]) / 2, 1.0], (1, 21, 1)) for b in boxes]
+
+
+def test_detect_take_reports_frames_through_the_progress_protocol(take) -> None:
+    path, _ = take
+    t = Take(path)
+    boxes = {cam: np.tile([0.0, 0.0, 8.0, 4.0, np.nan], (t.frame_count(cam), 1)) for cam in t.cameras}
+    calls = []
+    result = detect_take(t, _BoxDetector(), boxes, chunk=3, progress=lambda *call: calls.append(call))
+    # 7 frames of cam00 and 5 of cam01, three at a time per camera
+    assert calls == [("detect", done, 12) for done in (0, 3, 6, 7, 10, 12)]
+    assert result["cam01"].keypoints.shape == (5, 21, 3) and np.all(result["cam00"].keypoints[:, :, :2] == [4, 2])

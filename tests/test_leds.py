@@ -8,32 +8,45 @@ import os
 import select
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 import serial
 from click.testing import CliRunner
 
+from manus_capture.cli import cli
+from manus_core.errors import LedDisconnected, LedError, LedRejected, LedTimeout, LedValueError
 from manus_core.rig_config import LedConfig
-from rig.leds import (
-    AsciiLedController,
-    Backoff,
-    DmxLedController,
-    LedDisconnected,
-    LedError,
-    LedRejected,
-    LedTimeout,
-    LedValueError,
-    SimulatedLedController,
-    now_ns,
-    open_led_controller,
-)
+from rig.leds import AsciiLedController, Backoff, DmxLedController, SimulatedLedController, now_ns, open_led_controller
 from rig.leds.dmx import EnttecParser, get_parameters_message, parse_parameters, send_dmx_message
 from rig.leds.protocol import FrameParser, crc16, encode
 from rig.leds.sim import VirtualPort
 
 # Timeouts generous enough for a loaded machine, so that "answered at the first attempt" holds.
 FAST = dict(timeout_s=0.25, retries=2, backoff=Backoff(initial_s=0.02, max_s=0.1, give_up_s=3.0))
+
+
+def wait_until(condition: Callable[[], object], what: str, timeout_s: float = 5.0) -> None:
+    """Poll `condition` until it holds; the deadline is generous, reaching it is a failure."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"gave up after {timeout_s:g} s waiting for {what}")
+        time.sleep(0.001)
+
+
+def plugging_back_opener(plug: Callable[[], None], failed: list[int]):
+    """pyserial's opener, except that an open that fails (the device is out) notes its time and
+    plugs the device back in: the next reconnect attempt finds it, whatever the machine's load."""
+    def opener(*args, **kwargs):
+        try:
+            return serial.Serial(*args, **kwargs)
+        except OSError:
+            failed.append(now_ns())
+            plug()
+            raise
+    return opener
 
 
 @pytest.fixture()
@@ -77,7 +90,10 @@ def test_levels_flash_status_and_log(sim, leds):
     leds.set_panel(2, 0.25)
     assert leds.status()["levels"] == [0.8, 0.8, 0.25, 0.8]
     flash = leds.flash(40, level=1.0)
-    time.sleep(0.06)
+    [(start, end, level)] = sim.flashes()
+    assert (end - start, level) == (40_000_000, 1.0)                 # timed by the controller's clock
+    # Off well after the flash, so that the check at onset + 45 ms below sees the set-point.
+    wait_until(lambda: now_ns() > end + 10_000_000, "10 ms past the end of the flash")
     leds.off()
     t1 = now_ns()
     grid = np.arange(t0, t1, 100_000)                     # the panels every 0.1 ms
@@ -102,7 +118,7 @@ def test_levels_flash_status_and_log(sim, leds):
 
 def test_trigger_pulses(sim, leds):
     ack = leds.trigger(500.0, count=20)
-    time.sleep(0.08)
+    wait_until(lambda: len(sim.pulse_times()[0]) >= 20, "20 trigger pulses")
     ids, times = sim.pulse_times()
     assert list(ids) == list(range(20))
     assert np.all(np.diff(times) == 2_000_000)                        # 500 Hz
@@ -111,11 +127,14 @@ def test_trigger_pulses(sim, leds):
     status = leds.status()
     assert status["pulses"] == 20 and status["trigger_hz"] == 0.0     # the run is over
     second = leds.trigger(1000.0)                                     # until stopped
-    time.sleep(0.02)
+    wait_until(lambda: len(sim.pulse_times()[0]) >= 30, "10 pulses of the second run")
     leds.stop_trigger()
     assert int(second["reply"]["p0"]) == 20                           # ids keep counting
     ids, times = sim.pulse_times()
-    assert ids[-1] - 20 + 1 == len(ids) - 20 >= 10
+    assert list(ids) == list(range(len(ids))) and len(ids) >= 30
+    assert np.all(np.diff(times[20:]) == 1_000_000)                   # 1000 Hz
+    status = leds.status()
+    assert status["pulses"] == len(ids) and status["trigger_hz"] == 0.0   # stopped
 
 
 def test_bad_values_are_refused_before_sending(leds):
@@ -135,17 +154,19 @@ def test_controller_refusal_is_an_error(sim):
 
 
 # -- faults ----------------------------------------------------------------------------------
-def test_unplug_and_replug_restores_the_set_point(sim, leds):
-    leds.set_levels([0.7, 0.6, 0.5, 0.4])
-    sim.unplug()
-    t_unplugged = now_ns()
-    threading.Timer(0.25, sim.replug).start()
-    record = leds.set_panel(0, 0.1)                       # blocks through the reconnect
+def test_unplug_and_replug_restores_the_set_point(sim):
+    failed: list[int] = []
+    with AsciiLedController(sim.path, panels=4, opener=plugging_back_opener(sim.replug, failed),
+                            **FAST) as leds:
+        leds.set_levels([0.7, 0.6, 0.5, 0.4])
+        sim.unplug()
+        record = leds.set_panel(0, 0.1)                   # blocks through the reconnect
     assert record["status"] == "ok" and record["attempts"] == 1
-    assert np.array_equal(sim.state_at(now_ns()), [0.1, 0.6, 0.5, 0.4])
-    assert np.array_equal(sim.state_at(t_unplugged + 100_000_000), [0, 0, 0, 0])    # dark while out
+    assert np.array_equal(sim.state_at(record["t_ack_ns"]), [0.1, 0.6, 0.5, 0.4])
+    assert len(failed) == 1 and np.array_equal(sim.state_at(failed[0]), [0, 0, 0, 0])   # dark while out
     events = [r for r in leds.records() if r.get("event") == "reconnect"]
-    assert len(events) == 1 and events[0]["attempts"] >= 2 and events[0]["downtime_ms"] >= 200
+    # Found at the second attempt, after the first backoff wait.
+    assert len(events) == 1 and events[0]["attempts"] == 2 and events[0]["downtime_ms"] >= 20
     reapplied = [r for r in leds.records() if r.get("why") == "reconnect"]
     assert len(reapplied) == 1 and reapplied[0]["args"] == [700, 600, 500, 400]
     # The old set-point came back before the new command: the first level after replug is it.
@@ -203,7 +224,8 @@ def test_reboot_is_noticed_and_set_point_restored(sim, leds):
     leds.on(0.4)
     sim.reboot()
     assert np.array_equal(sim.state_at(now_ns()), [0, 0, 0, 0])
-    leds.poll()
+    # The BOOT announcement crosses the pty asynchronously: poll until it has been read.
+    wait_until(lambda: leds.poll() or any(r.get("event") == "boot" for r in leds.records()), "BOOT")
     assert np.array_equal(sim.state_at(now_ns()), [0.4] * 4)
     assert [r.get("event") or r.get("why") for r in leds.records()[-2:]] == ["boot", "reboot"]
 
@@ -245,6 +267,7 @@ class FakeWidget:
         # returns, and swallow a write that should fail; the lock keeps the two apart.
         self.lock = threading.Lock()
         self.universes: list[tuple[int, bytes]] = []
+        self._received = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -256,13 +279,25 @@ class FakeWidget:
                 fd = self.port.master
                 data = os.read(fd, 4096) if fd is not None and select.select([fd], [], [], 0.01)[0] else b""
             if not data:
-                time.sleep(0.002)
+                time.sleep(0.002)                  # lets plug/unplug take the lock between polls
                 continue
             for label, payload in parser.feed(data):
                 if label == 6:
-                    self.universes.append((now_ns(), payload))
+                    with self._received:
+                        self.universes.append((now_ns(), payload))
+                        self._received.notify_all()
                 elif label == 3:
                     os.write(fd, bytes([0x7E, 3, 5, 0, 0x44, 0x01, 9, 1, 40, 0xE7]))
+
+    def wait_universes(self, n: int, timeout_s: float = 5.0) -> None:
+        with self._received:
+            if not self._received.wait_for(lambda: len(self.universes) >= n, timeout_s):
+                pytest.fail(f"the widget got {len(self.universes)} DMX universes in {timeout_s:g} s, "
+                            f"expected {n}")
+
+    def plug(self):
+        with self.lock:
+            self.port.plug()
 
     def unplug(self):
         with self.lock:
@@ -276,30 +311,32 @@ class FakeWidget:
 
 def test_dmx_controller_on_a_widget(tmp_path):
     widget = FakeWidget(str(tmp_path / "ttyUSB-dmx"))
+    failed: list[int] = []
     try:
-        with DmxLedController(widget.port.path, panels=3, start_channel=2, **FAST) as dmx:
+        with DmxLedController(widget.port.path, panels=3, start_channel=2,
+                              opener=plugging_back_opener(widget.plug, failed), **FAST) as dmx:
             dmx.set_levels([1.0, 0.5, 0.0])
             assert dmx.status()["rate_hz"] == 40
             dmx.flash(30)
-            time.sleep(0.08)
+            widget.wait_universes(3)                       # the set-point, the flash, its end
             with pytest.raises(LedError, match="no trigger output"):
                 dmx.trigger(120)
             widget.unplug()
-            threading.Timer(0.15, widget.port.plug).start()
             dmx.set_panel(2, 0.2)                          # reconnects, then sends
-            time.sleep(0.05)
+            widget.wait_universes(5)
         frames = [payload for _, payload in widget.universes]
         setpoint = bytes([0, 0, 255, 128, 0]) + bytes(20)
+        assert len(frames) == 5 and len(failed) == 1
         assert frames[0] == setpoint                       # start code, ch1 unused, ch2..4 panels
         assert frames[1] == bytes([0, 0, 255, 255, 255]) + bytes(20)     # flash
         assert frames[2] == setpoint                       # restored by the host's timer
-        assert widget.universes[2][0] - widget.universes[1][0] >= 30_000_000
         assert frames[3] == setpoint                       # re-sent after the replug
         assert frames[4] == bytes([0, 0, 255, 128, 51]) + bytes(20)
         records = dmx.records()
         # The interrupted command is logged when issued; the set-point re-sent on reconnect after it.
         assert [r.get("cmd") or r.get("event") for r in records] == ["DMX", "FLASH", "FLASH-END", "DMX",
                                                                      "reconnect", "DMX"]
+        assert records[2]["t_send_ns"] - records[1]["t_done_ns"] >= 30_000_000   # the flash lasted 30 ms
         assert records[3]["status"] == "sent" and records[5]["why"] == "reconnect"
         assert records[3]["t_done_ns"] > records[5]["t_send_ns"]
     finally:
@@ -318,8 +355,6 @@ device = "/dev/v4l/by-id/none"
 
 
 def test_leds_command(tmp_path):
-    from manus_capture.cli import cli
-
     rig = tmp_path / "rig.toml"
     rig.write_text(RIG + '[leds]\nport = "sim"\nprotocol = "sim"\npanels = 2\nlevel = 0.6\n')
     runner = CliRunner()

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dataset_tools.one_euro import OneEuroError, _one_euro_loop, one_euro
+from dataset_tools.one_euro import _one_euro_loop, one_euro
+from manus_core.errors import OneEuroError
 
 
 def test_matches_the_authors_ground_truth(shared_data):

@@ -5,15 +5,15 @@ from __future__ import annotations
 import dataclasses
 import json
 
-import h5py
 from click.testing import CliRunner
 
 from manus_capture.cli import cli
 from manus_capture.commands.protocol import protocol_steps
+from manus_core.ground_truth import GroundTruth, TruthHand, TruthObject
 from manus_core.rig_config import rig_to_toml
+from manus_core.session import load_session, open_session
 from rig.layouts import make_rig
-from rig.recorder import TakeResult
-from manus_core.session import load_session
+from rig.record import TakeResult
 
 
 def test_protocol_steps_follow_the_paper():
@@ -43,10 +43,10 @@ def test_protocol_on_the_sim_records_every_step_unattended(tmp_path):
     for step in steps:
         meta = json.loads((tmp_path / "s" / step.name / "take.json").read_text())
         assert meta["kind"] == step.kind and meta["status"] == "complete" and meta["frames"] >= 2 * 6
-        with h5py.File(tmp_path / "s" / step.name / "ground_truth.h5") as f:
-            assert f.attrs["kind"] == step.kind and f.attrs["object"] == "box" and f.attrs["paint"]
-            assert ("object" in f) == (step.kind in ("object", "grasp"))
-            assert ("hand" in f) == (step.kind in ("hand", "grasp", "canonical"))
+        gt = GroundTruth.of_take(tmp_path / "s" / step.name)
+        assert gt.info.kind == step.kind and gt.info.object == "box" and gt.info.paint
+        assert gt.has(TruthObject) == (step.kind in ("object", "grasp"))
+        assert gt.has(TruthHand) == (step.kind in ("hand", "grasp", "canonical"))
     # run again: every take is complete, nothing is recorded twice
     again = CliRunner().invoke(cli, args)
     assert again.exit_code == 0 and again.output.count("already complete, skipped") == 7
@@ -64,13 +64,12 @@ def test_protocol_prompts_the_operator_on_a_real_rig(tmp_path, monkeypatch):
     (tmp_path / "rig.toml").write_text(rig_to_toml(rig))
     recorded = []
 
-    def fake_record(rig, session, take, kind, duration_s, **kw):
-        from manus_core.session import open_session
+    def fake_record(rig, session, take, kind, duration_s, options, **kw):
         recorded.append((take, kind, duration_s))
         open_session(session, rig).update_take(take, kind=kind, status="complete")
         return TakeResult(session / take, "complete", "", False, [])
 
-    monkeypatch.setattr("rig.recorder.record_take", fake_record)
+    monkeypatch.setattr("manus_capture.commands.protocol.record_take", fake_record)
     res = CliRunner().invoke(cli, ["protocol", "--rig", str(tmp_path / "rig.toml"), "--session",
                                    str(tmp_path / "s"), "--object", "cup", "--no-leds"], input="\ns\nq\n")
     assert recorded == [("00-calibration", "calibration", 3.0)]      # recorded, skipped, quit

@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import errno
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -15,20 +14,23 @@ import time
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from manus_core.take import Take
 from manus_capture.cli import cli
-from rig.cameras import CameraDisconnected, CameraInfo, Frame
-from rig.clock import VirtualClock
+from manus_core.errors import CameraDisconnected, RecordError
+from manus_core.ground_truth import GroundTruth
 from manus_core.rig_config import rig_to_toml
+from manus_core.session import load_session
+from manus_core.take import Take
+from rig.backends import BACKENDS
+from rig.cameras import Backend, CameraInfo, FoundCamera, Frame, TakeCameras
+from rig.cameras.aravis import aravis
+from rig.clock import VirtualClock
 from rig.layouts import make_rig
 from rig.mkv import MkvWriter
-from rig.recorder import FLAG_HOST_JPEG, Recorder, StopFlag, flash_offsets, record_take
-from manus_core.session import load_session
+from rig.record import FLAG_HOST_JPEG, Recorder, RecordOptions, StopFlag, flash_offsets, record_take
 
 PERIOD_NS = 1e9 / 120
 
@@ -39,15 +41,25 @@ def sim_rig(cameras=3, sync="free-run", drop_rate=0.0, **storage):
     return dataclasses.replace(rig, cameras=cams, storage=dataclasses.replace(rig.storage, **storage))
 
 
+def wrap_backend(monkeypatch, name: str, wrap) -> None:
+    """Register, in place of backend `name`, one whose cameras are wrap(id, camera) (a test's fake)."""
+    inner = BACKENDS[name]
+
+    def open_take(setup):
+        opened = inner.open(setup)
+        return dataclasses.replace(opened, cameras={k: wrap(k, v) for k, v in opened.cameras.items()})
+
+    monkeypatch.setitem(BACKENDS, name, dataclasses.replace(inner, open=open_take))
+
+
 def write_rig(rig, path: Path) -> Path:
     path.write_text(rig_to_toml(rig))
     return path
 
 
 def truth(take_dir: Path):
-    with h5py.File(take_dir / "ground_truth.h5") as f:
-        ids = [x.decode() if isinstance(x, bytes) else x for x in f["cameras/ids"][()]]
-        return ids, f["frames/exposure_mid_ns"][()], f["frames/dropped"][()]
+    gt = GroundTruth.of_take(take_dir)
+    return list(gt.cameras.ids), gt.frames.exposure_mid_ns, gt.frames.dropped
 
 
 def check_readable(take_dir: Path) -> dict[str, int]:
@@ -66,8 +78,7 @@ def check_readable(take_dir: Path) -> dict[str, int]:
 
 def test_sim_take_stores_every_delivered_frame_and_the_flashes(tmp_path):
     rig = sim_rig(drop_rate=0.06)
-    result = record_take(rig, tmp_path / "s", "t1", "calibration", 0.3, flash_ms=40, flash_every_s=0.15,
-                         progress=False)
+    result = record_take(rig, tmp_path / "s", "t1", "calibration", 0.3, RecordOptions(flash_ms=40, flash_every_s=0.15))
     take_dir = tmp_path / "s" / "t1"
     meta = json.loads((take_dir / "take.json").read_text())
     assert result.status == meta["status"] == "complete" and result.exit_code == 0
@@ -117,7 +128,7 @@ def test_sim_take_stores_every_delivered_frame_and_the_flashes(tmp_path):
 
 def test_software_trigger_one_frame_per_camera_per_tick(tmp_path):
     rig = sim_rig(sync="software-trigger")
-    record_take(rig, tmp_path / "s", "t", "calibration", 0.2, progress=False, use_leds=False)
+    record_take(rig, tmp_path / "s", "t", "calibration", 0.2, RecordOptions(use_leds=False))
     take_dir = tmp_path / "s" / "t"
     meta = json.loads((take_dir / "take.json").read_text())
     ticks = meta["triggers"]
@@ -137,7 +148,7 @@ def test_software_trigger_one_frame_per_camera_per_tick(tmp_path):
 
 def test_hardware_trigger_logs_the_controller_pulses(tmp_path):
     rig = sim_rig(sync="hardware-trigger")
-    record_take(rig, tmp_path / "s", "t", "calibration", 0.1, progress=False)
+    record_take(rig, tmp_path / "s", "t", "calibration", 0.1)
     meta = json.loads((tmp_path / "s" / "t" / "take.json").read_text())
     trig = meta["triggers"]
     assert trig["source"] == "controller"
@@ -164,11 +175,11 @@ class Disconnecting:
         return getattr(self.inner, name)
 
 
-def test_lost_camera_is_reported_and_the_others_go_on(tmp_path):
+def test_lost_camera_is_reported_and_the_others_go_on(tmp_path, monkeypatch):
     rig = sim_rig()
     lost = rig.cameras[1].id
-    result = record_take(rig, tmp_path / "s", "t", "calibration", 0.25, progress=False, use_leds=False,
-                         wrap_camera=lambda cid, cam: Disconnecting(cam, 10) if cid == lost else cam)
+    wrap_backend(monkeypatch, "sim", lambda cid, cam: Disconnecting(cam, 10) if cid == lost else cam)
+    result = record_take(rig, tmp_path / "s", "t", "calibration", 0.25, RecordOptions(use_leds=False))
     take_dir = tmp_path / "s" / "t"
     meta = json.loads((take_dir / "take.json").read_text())
     assert meta["status"] == "complete" and meta["lost_cameras"] == [lost] and result.exit_code == 1
@@ -195,7 +206,7 @@ def test_failing_writer_interrupts_the_take_and_keeps_every_file_readable(tmp_pa
         real_write(self, jpegs)
 
     monkeypatch.setattr(MkvWriter, "write", write)
-    result = record_take(rig, tmp_path / "s", "t", "calibration", 2.0, progress=False, use_leds=False)
+    result = record_take(rig, tmp_path / "s", "t", "calibration", 2.0, RecordOptions(use_leds=False))
     meta = json.loads((tmp_path / "s" / "t" / "take.json").read_text())
     assert result.status == meta["status"] == "interrupted" and result.exit_code == 1
     assert meta["reason"].startswith(f"writer of camera {victim} failed: OSError")
@@ -282,10 +293,10 @@ def test_refuses_to_start_without_disk_and_existing_takes(tmp_path, monkeypatch)
 
 def test_session_keeps_one_rig_configuration(tmp_path):
     rig = sim_rig()
-    record_take(rig, tmp_path / "s", "a", "calibration", 0.05, progress=False, use_leds=False)
+    record_take(rig, tmp_path / "s", "a", "calibration", 0.05, RecordOptions(use_leds=False))
     other = dataclasses.replace(rig, fps=60.0)
     with pytest.raises(ValueError, match="recorded with another rig configuration.*fps = 120.0"):
-        record_take(other, tmp_path / "s", "b", "calibration", 0.05, progress=False, use_leds=False)
+        record_take(other, tmp_path / "s", "b", "calibration", 0.05, RecordOptions(use_leds=False))
 
 
 class RawCamera:
@@ -330,7 +341,7 @@ def test_raw_frames_are_jpeg_encoded(tmp_path):
     ids = [c.id for c in rig.cameras]
     cams = {ids[0]: RawCamera(ids[0], gray, "mono8", clock, t0),
             ids[1]: RawCamera(ids[1], bayer, "bayer_rg8", clock, t0)}
-    result = Recorder(rig, tmp_path / "t", "calibration", 0.05, cams, clock, t0_ns=t0, progress=False).run()
+    result = Recorder(rig, tmp_path / "t", "calibration", 0.05, TakeCameras(cams, t0_ns=t0), clock).run()
     assert result.status == "complete"
     take = Take(tmp_path / "t")
     assert check_readable(tmp_path / "t") == {ids[0]: 7, ids[1]: 7}
@@ -343,6 +354,31 @@ def test_raw_frames_are_jpeg_encoded(tmp_path):
     assert np.abs(colour[inner] - bgr[inner][..., ::-1]).mean() > 40   # red and blue in their places
 
 
+def test_a_registered_backend_records_and_is_listed(tmp_path, monkeypatch):
+    """A backend is one registry entry: record_take opens its cameras on its clock, `rig list` asks it."""
+    image = np.full((48, 64), 128, np.uint8)
+
+    def open_take(setup):
+        t0 = setup.clock.now_ns() + 1_000_000
+        cams = {c.id: RawCamera(c.id, image, "mono8", setup.clock, t0) for c in setup.cameras}
+        return TakeCameras(cams, t0_ns=t0, note="fake raw cameras")
+
+    found = FoundCamera("fake", "fake:0", model="Raw")
+    monkeypatch.setitem(BACKENDS, "fake", Backend("fake", open_take, discover=lambda fake: [found],
+                                                  clock=lambda rig: VirtualClock(time_scale=0)))
+    rig = make_rig("cube53", cameras=2, resolution=(64, 48), backend="aravis", seed=1)
+    rig = dataclasses.replace(rig, cameras=tuple(dataclasses.replace(c, backend="fake") for c in rig.cameras))
+    result = record_take(rig, tmp_path / "s", "t", "calibration", 0.05, RecordOptions(use_leds=False))
+    assert result.status == "complete" and result.meta["backend_note"] == "fake raw cameras"
+    assert check_readable(tmp_path / "s" / "t") == {c.id: 7 for c in rig.cameras}
+    listed = CliRunner().invoke(cli, ["rig", "list", "--no-aravis"])
+    assert listed.exit_code == 0 and "fake    fake:0  (model Raw)" in listed.output
+    # a backend on a clock of its own cannot share a take with the host's cameras
+    mixed = dataclasses.replace(rig, cameras=(rig.cameras[0], dataclasses.replace(rig.cameras[1], backend="v4l2")))
+    with pytest.raises(RecordError, match="simulated and real cameras cannot share a take"):
+        record_take(mixed, tmp_path / "s", "u", "calibration", 0.05, RecordOptions(use_leds=False))
+
+
 @pytest.mark.parametrize("chroma", ["444", "420"])
 def test_stored_jpeg_chroma(tmp_path, chroma):
     rig = make_rig("cube53", cameras=1, resolution=(64, 48), backend="aravis", seed=1)
@@ -353,68 +389,14 @@ def test_stored_jpeg_chroma(tmp_path, chroma):
     clock = VirtualClock(time_scale=0)
     t0 = clock.now_ns() + 1_000_000
     cid = rig.cameras[0].id
-    result = Recorder(rig, tmp_path / "t", "calibration", 0.03, {cid: RawCamera(cid, stripes, "bgr8", clock, t0)},
-                      clock, t0_ns=t0, progress=False).run()
+    result = Recorder(rig, tmp_path / "t", "calibration", 0.03,
+                      TakeCameras({cid: RawCamera(cid, stripes, "bgr8", clock, t0)}, t0_ns=t0), clock).run()
     assert result.status == "complete"
     take = Take(tmp_path / "t")
     assert take.meta["storage"] == {"jpeg_quality": 90, "jpeg_chroma": chroma}
     error = np.abs(take.read_frame(cid, 1).astype(int) - stripes).mean()
     # full-resolution colour keeps each column's hue; 4:2:0 averages neighbouring columns to yellow
     assert error < 15 if chroma == "444" else error > 40, error
-
-
-def test_mkv_is_readable_when_killed_and_rolls_back_failed_writes(tmp_path, monkeypatch):
-    frames = []
-    for k in range(40):
-        img = np.full((32, 48, 3), 6 * k, np.uint8)
-        frames.append(cv2.imencode(".jpg", img)[1].tobytes())
-
-    w = MkvWriter(tmp_path / "a.mkv", 48, 32, 120.0, cluster_frames=16)
-    for f in frames:
-        w.write(f)
-    # a process killed here leaves the file without sizes, cues or duration
-    shutil.copy(tmp_path / "a.mkv", tmp_path / "killed.mkv")
-    assert _packets(tmp_path / "killed.mkv") == frames
-    size = os.path.getsize(tmp_path / "killed.mkv")
-    os.truncate(tmp_path / "killed.mkv", size - 200)        # killed in the middle of a block
-    assert _packets(tmp_path / "killed.mkv") == frames[:39]
-    # a write that fails half-way is cut back to the previous frame
-    real_writev = os.writev
-
-    def half_then_full(fd, parts):
-        real_writev(fd, [b"".join(parts)[:300]])
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr("rig.mkv.os.writev", half_then_full)
-    with pytest.raises(OSError, match="No space left"):
-        w.write(frames[0])
-    monkeypatch.undo()
-    assert w.frames == 40
-    w.write(frames[0])
-    w.rollback()        # ... and a frame whose frames.csv row could not be written is removed
-    w.close()
-    assert _packets(tmp_path / "a.mkv") == frames
-    cap = cv2.VideoCapture(str(tmp_path / "a.mkv"))
-    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(120.0, rel=1e-6)
-    assert cap.set(cv2.CAP_PROP_POS_FRAMES, 30)              # cues: seek by frame index
-    ok, img = cap.read()
-    assert ok and abs(int(img[0, 0, 0]) - 6 * 30) <= 2
-    if shutil.which("ffprobe"):   # the reference demuxer finds nothing to complain about
-        probe = subprocess.run(["ffprobe", "-v", "error", "-count_packets", "-show_entries",
-                                "stream=nb_read_packets,codec_name", "-of", "json", str(tmp_path / "a.mkv")],
-                               capture_output=True, text=True, check=True)
-        stream = json.loads(probe.stdout)["streams"][0]
-        assert stream == {"codec_name": "mjpeg", "nb_read_packets": "40"} and probe.stderr == ""
-
-
-def _packets(path: Path) -> list[bytes]:
-    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_FORMAT, -1])
-    out = []
-    while True:
-        ok, p = cap.read()
-        if not ok:
-            return out
-        out.append(p.reshape(-1).tobytes())
 
 
 def test_flash_offsets_fit_the_take():
@@ -434,10 +416,9 @@ def test_stop_flag_keeps_the_first_reason():
     assert from_handler.reason == "stopped by SIGINT (Ctrl-C)" and from_handler.by_signal
 
 
-def test_aravis_fake_camera_records_through_the_same_path(tmp_path):
+def test_aravis_fake_camera_records_through_the_same_path(tmp_path, monkeypatch):
     """Aravis's in-process Fake camera (mono8, real time): raw frames are JPEG-encoded as they come."""
     try:
-        from rig.cameras.aravis import aravis
         aravis().enable_interface("Fake")
     except Exception as exc:   # CameraError without Aravis, GLib errors without the Fake interface
         pytest.skip(f"Aravis 0.8 Fake interface not available ({exc})")
@@ -459,10 +440,12 @@ def test_aravis_fake_camera_records_through_the_same_path(tmp_path):
         def __getattr__(self, name):
             return getattr(self.inner, name)
 
-    result = record_take(rig, tmp_path / "s", "t", "calibration", 0.3, use_leds=False, progress=False,
-                         wrap_camera=lambda cid, c: Keep(c))
+    wrap_backend(monkeypatch, "aravis", lambda cid, c: Keep(c))
+    result = record_take(rig, tmp_path / "s", "t", "calibration", 0.3, RecordOptions(use_leds=False))
     assert result.status == "complete" and result.cameras[0].encoding == "mono8"
-    assert check_readable(tmp_path / "s" / "t") == {cam.id: len(raw)} and 20 <= len(raw) <= 45
+    # a real-time stream: how many frames a loaded machine reads is not the point, only that the
+    # take ends on time (0.35 s at 100 FPS) and stores every frame read
+    assert check_readable(tmp_path / "s" / "t") == {cam.id: len(raw)} and 6 <= len(raw) <= 45
     take = Take(tmp_path / "s" / "t")
     rows = take.camera_frames(cam.id)
     assert rows["seq"].tolist() == [f.seq for f in raw] and np.all(rows["flags"].astype(int) == FLAG_HOST_JPEG)

@@ -13,13 +13,15 @@ import pytest
 from click.testing import CliRunner
 
 from dataset_tools.annotate import take_key
-from manus_core.cameras import CameraRig
+from dataset_tools.sync import frame_groups
 from manus_capture.cli import cli
+from manus_core.cameras import CameraRig
+from manus_core.ground_truth import GroundTruth
 from rig.layouts import make_rig
-from rig.recorder import record_take
+from rig.record import RecordOptions, record_take
 from rig.sim.cube import true_cameras
 
-W, H, FPS = 320, 180, 120
+W, H = 320, 180
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -33,7 +35,7 @@ def _record(root, take, kind, seconds, ticks):
     rig = dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, paint=True, object="mug"))
     for name, kind_, secs, labelled in [("empty", "calibration", 0.03, []), ("object", "object", 0.02, [0]),
                                         (take, kind, seconds, ticks)]:
-        assert record_take(rig, root / "S", name, kind_, secs, progress=False, label_frames=labelled).status == "complete"
+        assert record_take(rig, root / "S", name, kind_, secs, RecordOptions(label_frames=labelled)).status == "complete"
     true_cameras(rig).save(root / "cameras.json")
     return root
 
@@ -57,10 +59,8 @@ def _segment(session, take, *extra):
 
 
 def _truth(session, take, frame_ns):
-    with h5py.File(session / "S" / take / "ground_truth.h5") as gt:
-        tick = np.rint((frame_ns - gt.attrs["t0_ns"]) * FPS / 1e9).astype(int)
-        frames = gt["labels/frames"][()].tolist()
-        labels = gt["labels/image"][()]
+    gt = GroundTruth.of_take(session / "S" / take)
+    tick, frames, labels = gt.tick_at(frame_ns), gt.label_frames.tolist(), gt.labels()
     keep = [t for t, k in enumerate(tick) if k in frames]
     return keep, labels[:, [frames.index(tick[t]) for t in keep]].transpose(1, 0, 2, 3)
 
@@ -160,11 +160,8 @@ def test_segment_bad_input(canon_session, tmp_path):
 
 
 def _groups(session, take):
-    from dataset_tools.annotate import sync_groups
-    from manus_core.take import Take
-
-    (frame_ns, frame_index), _ = sync_groups(Take(session / "S" / take))
-    return frame_ns, frame_index
+    groups = frame_groups(session / "S" / take)
+    return groups.frame_ns, groups.frame_index
 
 
 def test_segment_masks_made_by_another_tool(canon_session, tmp_path):
@@ -215,10 +212,10 @@ def test_segment_paint_on_the_hand_surface(canon_session, tmp_path):
 
     session = canon_session
     frame_ns, _ = _groups(session, "canon")
-    with h5py.File(session / "S" / "canon" / "ground_truth.h5") as gt:
-        tick = np.rint((frame_ns - gt.attrs["t0_ns"]) * FPS / 1e9).astype(int)
-        angles, bones = gt["hand/joint_angles"][()][tick], gt["hand/bone_lengths"][()]
-        true_points, true_paint = gt["contact/points_rest"][()], gt["contact/accumulated"][()] > 0.5
+    gt = GroundTruth.of_take(session / "S" / "canon")
+    tick = gt.tick_at(frame_ns)
+    angles, bones = gt.hand.joint_angles[tick], gt.hand.bone_lengths
+    true_points, true_paint = gt.contact.points_rest, gt.contact.accumulated > 0.5
     out = tmp_path / "D.h5"
     # what annotate stores, with the true poses
     add_arrays(out, take_key(session / "S" / "canon"), {"frame_ns": frame_ns, "joint_angles": angles,

@@ -8,9 +8,19 @@ import cv2
 import numpy as np
 import pytest
 
-from dataset_tools.segmentation import (BackgroundModel, PaintKey, SegmentationError, dominant_colour_key,
-                                        fill_holes, hand_object_masks, object_colour, paint_key_from_object,
-                                        paint_masks, refine_edges, remove_small)
+from dataset_tools.segmentation import (
+    BackgroundModel,
+    PaintKey,
+    dominant_colour_key,
+    fill_holes,
+    hand_object_masks,
+    object_colour,
+    paint_key_from_object,
+    paint_masks,
+    refine_edges,
+    remove_small,
+)
+from manus_core.errors import SegmentationError
 
 # The issue's targets hold at the cube's own resolution: a finger is ~16 px wide and a paint spot
 # ~20 px across (at 640x360 the spots' edge pixels cost over 0.1 of IoU: paint 0.87-0.93 per view)

@@ -5,12 +5,13 @@ from __future__ import annotations
 import dataclasses
 
 import cv2
-import h5py
 import numpy as np
 import pytest
 
-from rig.cameras import Camera, CameraError
+from manus_core.errors import CameraError
+from manus_core.ground_truth import GroundTruth
 from manus_core.rig_config import SimCameraConfig
+from rig.cameras import Camera
 from rig.layouts import make_rig
 from rig.sim.clocks import CameraClock
 from rig.sim.cube import SimulatedCube, true_cameras
@@ -65,10 +66,9 @@ def test_camera_stream_drops_are_gaps_and_all_in_ground_truth(tmp_path):
         assert image.shape == (54, 96, 3) and frames[0].encoding == "jpeg"
         cam.stop(); cam.close()
     cube.write_ground_truth(tmp_path / "ground_truth.h5")
-    with h5py.File(tmp_path / "ground_truth.h5") as f:
-        dropped = f["frames/dropped"][()]
-        exposure = f["frames/exposure_mid_ns"][()]
-        assert [x.decode() if isinstance(x, bytes) else x for x in f["cameras/ids"][()]] == [c.id for c in rig.cameras]
+    gt = GroundTruth(tmp_path / "ground_truth.h5")
+    dropped, exposure = gt.frames.dropped, gt.frames.exposure_mid_ns
+    assert list(gt.cameras.ids) == [c.id for c in rig.cameras]
     n_drops = 0
     for c, seq in enumerate(seqs):
         received = np.zeros(seq.max() + 1, bool)
@@ -149,24 +149,24 @@ def grasp_truth(tmp_path_factory):
 def test_grasp_ground_truth_is_complete(grasp_truth):
     rig, path = grasp_truth
     cams = true_cameras(rig)
-    with h5py.File(path) as f:
-        F = f["frames/exposure_mid_ns"].shape[1]
-        assert F >= 30
-        assert f["hand/joints3d"].shape == (F, 21, 3) and f["hand/joint_angles"].shape == (F, 26)
-        assert f["hand/bone_lengths"].shape == (20,)
-        assert np.allclose(f["cameras/K"][()], cams.K) and np.allclose(f["cameras/t"][()], cams.t)
-        P = f["contact/points_rest"].shape[0]
-        assert f["contact/instant"].shape == (F, P)
-        accumulated = f["contact/accumulated"][()]
-        assert 0 < accumulated.sum() < P // 4
-        assert np.array_equal(accumulated, f["contact/instant"][()].any(axis=0) | accumulated)
-        labels = f["labels/image"][()]
-        assert labels.shape == (len(cams), 1, 90, 160)
-        seen = np.bincount(labels.ravel(), minlength=5)
-        assert seen[LABEL_HAND] > 100 and seen[LABEL_OBJECT] > 100 and seen[LABEL_WALLS] > 0
-        # the hand's true joints project inside its labelled pixels in most views
-        hold = f["labels/frames"][0]
-        uv = cams.project(f["hand/joints3d"][hold])
+    gt = GroundTruth(path)
+    F = gt.frames.exposure_mid_ns.shape[1]
+    assert F >= 30
+    assert gt.hand.joints3d.shape == (F, 21, 3) and gt.hand.joint_angles.shape == (F, 26)
+    assert gt.hand.bone_lengths.shape == (20,)
+    assert np.allclose(gt.cameras.K, cams.K) and np.allclose(gt.cameras.t, cams.t)
+    P = gt.contact.points_rest.shape[0]
+    assert gt.contact.instant.shape == (F, P)
+    accumulated = gt.contact.accumulated
+    assert 0 < accumulated.sum() < P // 4
+    assert np.array_equal(accumulated, gt.contact.instant.any(axis=0) | accumulated)
+    labels = gt.labels()
+    assert labels.shape == (len(cams), 1, 90, 160)
+    seen = np.bincount(labels.ravel(), minlength=5)
+    assert seen[LABEL_HAND] > 100 and seen[LABEL_OBJECT] > 100 and seen[LABEL_WALLS] > 0
+    # the hand's true joints project inside its labelled pixels in most views
+    hold = gt.label_frames[0]
+    uv = cams.project(gt.hand.joints3d[hold])
     inside = []
     for c in range(len(cams)):
         x, y = np.round(uv[c]).astype(int).T
@@ -180,8 +180,8 @@ def test_canonical_take_shows_the_paint(tmp_path):
     cube = SimulatedCube(rig, "canonical", duration_s=0.5)
     read_every_camera(cube, rig, 3)
     cube.write_ground_truth(tmp_path / "gt.h5", label_frames=[1])
-    with h5py.File(tmp_path / "gt.h5") as f:
-        labels = f["labels/image"][()]
-        assert f["contact/accumulated"][()].sum() > 0
+    gt = GroundTruth(tmp_path / "gt.h5")
+    labels = gt.labels()
+    assert gt.contact.accumulated.sum() > 0
     assert (labels == LABEL_PAINT).sum() > 20
     assert (labels == LABEL_OBJECT).sum() == 0

@@ -7,11 +7,21 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
-from manus_core.skeleton import (BONES, DEFAULT_BONE_LENGTHS, DOF_NAMES, FINGERTIPS, JOINT_NAMES, LOWER, PARENTS, UPPER, HandSkeleton, rodrigues)
-
-torch = pytest.importorskip("torch")
+from manus_core.skeleton import (
+    BONES,
+    DEFAULT_BONE_LENGTHS,
+    DOF_NAMES,
+    FINGERTIPS,
+    JOINT_NAMES,
+    LOWER,
+    PARENTS,
+    UPPER,
+    HandSkeleton,
+    rodrigues,
+)
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from manus_capture.splat.gaussians import rgb_to_sh0
-from manus_capture.splat.losses import LPIPS, LPIPSWeightsError, isotropy, load_lpips, psnr, ssim
+from manus_capture.splat.losses import LPIPS, isotropy, load_lpips, psnr, ssim
 from manus_capture.splat.sh import eval_sh, num_sh_bases, sh_basis
-
+from manus_core.errors import LPIPSWeightsError
 
 C1, C2 = 0.01 ** 2, 0.03 ** 2
 

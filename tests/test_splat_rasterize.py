@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from manus_core.cameras import CameraRig
 from manus_capture.splat import rasterize
 from manus_capture.splat.gaussians import covariance, quat_to_rotmat
 from manus_capture.splat.rasterize import project
 from manus_capture.splat.reference import render_reference
 from manus_capture.splat.sh import eval_sh, num_sh_bases
+from manus_core.cameras import CameraRig
 
 
 def random_scene(seed: int, n: int, cams: int, width: int, height: int, dtype=torch.float64):
@@ -169,7 +169,7 @@ def test_meta_and_backends():
     W, H = 20, 16
     scene = random_scene(4, 12, 2, W, H, torch.float32)
     rgb, alpha, meta = rasterize(*scene, W, H, return_meta=True)
-    assert meta["means2d"].shape == (2, 12, 2) and meta["radii"].shape == (2, 12)
+    assert meta["means2d"].shape == (2, 12, 2) and meta["radii"].shape == (2, 12, 2)
     assert bool((meta["radii"][meta["visible"]] > 0).all())
     auto, _ = rasterize(*scene, W, H, backend="auto")
     assert torch.equal(auto, rgb)  # on the CPU "auto" is the torch backend

@@ -15,15 +15,26 @@ import subprocess
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dataset_tools.sync import (analyze_sync, build_report, check_sequence, fit_clock, frame_groups,
-                                led_flashes, spread_floor_ns, sync_take)
-from manus_core.take import Take, TakeError
+from dataset_tools.sync import (
+    GROUPS_FILE,
+    analyze_sync,
+    build_report,
+    check_sequence,
+    fit_clock,
+    frame_groups,
+    led_flashes,
+    spread_floor_ns,
+    sync_take,
+)
 from manus_capture.cli import cli
+from manus_core.errors import TakeError
+from manus_core.frames_csv import HEADER, format_row
+from manus_core.ground_truth import GroundTruth
+from manus_core.take import Take
 from rig.layouts import make_rig
 from rig.sim.cube import HARDWARE_TRIGGER_LATENCY_NS, SimulatedCube
 
@@ -253,9 +264,8 @@ def write_take(root: Path, cube: SimulatedCube, rows: dict[str, list], jpegs: di
     for cam, data in jpegs.items():
         subprocess.run(["ffmpeg", "-v", "error", "-y", "-f", "mjpeg", "-framerate", str(FPS), "-i", "pipe:0",
                         "-c:v", "copy", str(root / "cams" / f"{cam}.mkv")], input=b"".join(data), check=True)
-    lines = ["cam,seq,t_device_ns,t_host_ns,bytes,flags"]
-    lines += [f"{cam},{s},{d},{h},{b},0" for cam, r in rows.items() for s, d, h, b in r]
-    (root / "frames.csv").write_text("\n".join(lines) + "\n")
+    lines = [HEADER + "\n"] + [format_row(cam, s, d, h, b, 0) for cam, r in rows.items() for s, d, h, b in r]
+    (root / "frames.csv").write_text("".join(lines))
     cams = [{"id": c.id, "exposure_us": c.exposure_us, "latency_ms": c.sim.latency_ms} for c in cube.camera_configs]
     (root / "take.json").write_text(json.dumps({
         "kind": cube.kind, "cameras": cams, "fps": FPS, "resolution": [32, 18], "sync": cube.config.sync,
@@ -311,10 +321,8 @@ def test_take_report_against_ground_truth(sim_take: Path, tmp_path: Path) -> Non
     for key in ("groups", "complete_groups", "spread_ms", "within_3ms_pct", "optical_check", "verdict"):
         assert key in on_disk
     assert set(on_disk["spread_ms"]) == {"median", "p95", "p99", "max"}
-    with h5py.File(take / "ground_truth.h5") as f:
-        ids = [s.decode() for s in f["cameras/ids"][()]]
-        offset = f["clock/offset_ns"][()]
-        dropped = f["frames/dropped"][()]
+    gt = GroundTruth.of_take(take)
+    ids, offset, dropped = gt.cameras.ids, gt.clock.offset_ns, gt.frames.dropped
     assert dropped.sum() >= 3
     for c, cam in enumerate(ids):
         entry = on_disk["cameras"][cam]
@@ -341,9 +349,11 @@ def test_take_report_against_ground_truth(sim_take: Path, tmp_path: Path) -> Non
     assert "## Optical check" in (take / "sync_report.md").read_text()
     png = cv2.imread(str(take / "sync_timeline.png"))
     assert png is not None and png.shape[1] >= 800
-    # frame groups for annotate: the take's frames on the ticks, -1 where a camera lost one
+    # frame groups for annotate, saved with the report: the take's frames on the ticks, -1 where a
+    # camera lost one
     groups = frame_groups(take)
-    assert groups.frame_index.shape[1] == 6
+    assert groups.path == take / GROUPS_FILE and on_disk["frame_groups"] == GROUPS_FILE
+    assert on_disk["groups"] == len(groups.frame_ns) and groups.frame_index.shape[1] == 6
     assert np.max(np.abs(np.diff(groups.frame_ns) - PERIOD_NS)) <= 1
     for c, cam in enumerate(groups.cameras):
         present = np.flatnonzero(groups.frame_index[:, c] >= 0)
@@ -379,10 +389,10 @@ def _hand_take(root: Path, sync: str = "hardware-trigger", cameras: int = 4) -> 
     cube = SimulatedCube(rig, "calibration", duration_s=3.0)
     frames, _, _ = clock_frames(cube, int(3 * FPS))
     root.mkdir(parents=True)
-    lines = ["cam,seq,t_device_ns,t_host_ns,bytes,flags"]
+    lines = [HEADER + "\n"]
     for cam, t in frames.items():
-        lines += [f"{cam},{s},{d},{h},1000,0" for s, d, h in zip(t["seq"], t["t_device_ns"], t["t_host_ns"])]
-    (root / "frames.csv").write_text("\n".join(lines) + "\n")
+        lines += [format_row(cam, s, d, h, 1000, 0) for s, d, h in zip(t["seq"], t["t_device_ns"], t["t_host_ns"])]
+    (root / "frames.csv").write_text("".join(lines))
     cams = [{"id": c.id, "exposure_us": c.exposure_us, "latency_ms": c.sim.latency_ms} for c in rig.cameras]
     (root / "take.json").write_text(json.dumps({"kind": "grasp", "cameras": cams, "fps": FPS, "sync": sync,
                                                 "t0_ns": cube.t0_ns, "status": "complete"}))
@@ -445,11 +455,6 @@ def test_bad_input(tmp_path: Path) -> None:
 
 def test_recorded_sim_take_offsets_match_ground_truth(tmp_path):
     """The whole path: `record` a simulated take, `sync-report` it, compare with ground_truth.h5."""
-    import h5py
-    from click.testing import CliRunner
-
-    from manus_capture.cli import cli
-
     runner = CliRunner()
     rig_file = tmp_path / "rig.toml"
     assert runner.invoke(cli, ["rig", "init", "--cameras", "5", "--resolution", "32x18", "-o", str(rig_file)]).exit_code == 0
@@ -459,10 +464,10 @@ def test_recorded_sim_take_offsets_match_ground_truth(tmp_path):
     take = tmp_path / "S" / "t"
     runner.invoke(cli, ["sync-report", str(take)])
     report = json.loads((take / "sync_report.json").read_text())
-    with h5py.File(take / "ground_truth.h5") as f:
-        ids = [x.decode() if isinstance(x, bytes) else x for x in f["cameras/ids"][()]]
-        truth = dict(zip(ids, f["clock/offset_ns"][()] / 1e6))
-        dropped = f["frames/dropped"][()].sum()
+    gt = GroundTruth.of_take(take)
+    ids = list(gt.cameras.ids)
+    truth = dict(zip(ids, gt.clock.offset_ns / 1e6))
+    dropped = gt.frames.dropped.sum()
     cams = report["cameras"]
     assert sorted(cams) == sorted(ids)
     for cam_id, cam in cams.items():

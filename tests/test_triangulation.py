@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 
 from dataset_tools.calibration.formats import load_cameras
+from dataset_tools.triangulation import triangulate, triangulate_frames
+from dataset_tools.undistort import undistort_points
 from manus_core.cameras import CameraRig
-from dataset_tools.triangulation import TriangulationError, triangulate, triangulate_frames, undistort_points
+from manus_core.errors import TriangulationError
 
 
 def _ring_rig(n: int = 8, radius: float = 2.0, k1: float = -0.25, distortion: bool = True) -> CameraRig:

@@ -21,14 +21,20 @@ from __future__ import annotations
 import json
 import os
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Annotated, Any, Literal, get_args
 
+import cv2
 import numpy as np
-from manus_core.errors import BoardError, CalibrationError
+from pydantic import AfterValidator, Field
+from pydantic_core import PydanticCustomError
 
-BOARD_TYPES = ("chessboard", "charuco", "apriltag-grid")
-_KEYS = {"type", "cols", "rows", "square", "marker", "dictionary", "inverted"}
+from manus_core.errors import BoardError
+from manus_core.validation import CLOSED, NOT_A_KEY, Bool, Float, Int, Problem, Str, known_keys, validate, worded
+
+BoardType = Literal["chessboard", "charuco", "apriltag-grid"]
+BOARD_TYPES = get_args(BoardType)
 # tags.json names families the way the AprilTag library does; OpenCV names them as dictionaries.
 TAG_FAMILIES = {"tag36h11": "DICT_APRILTAG_36h11", "tag25h9": "DICT_APRILTAG_25h9",
                 "tag36h10": "DICT_APRILTAG_36h10", "tag16h5": "DICT_APRILTAG_16h5"}
@@ -36,30 +42,38 @@ TAG_FAMILIES = {"tag36h11": "DICT_APRILTAG_36h11", "tag25h9": "DICT_APRILTAG_25h
 
 def dictionary_names() -> list[str]:
     """The predefined marker dictionaries OpenCV knows (DICT_4X4_50 ... DICT_APRILTAG_36h11)."""
-    import cv2
-
     return sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and isinstance(getattr(cv2.aruco, n), int))
 
 
 def get_dictionary(name: str):
     """The OpenCV dictionary called `name` (e.g. "DICT_4X4_1000")."""
-    import cv2
-
     return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+
+
+def _in_metres(square: float) -> float:
+    if square > 1.0:
+        raise PydanticCustomError("worded", f"is {square} m; lengths are in metres (a 25 mm square is 0.025)")
+    return square
+
+
+Count = Annotated[Int, Field(ge=2), worded("must be an integer >= 2, got {value}")]
 
 
 @dataclass(frozen=True)
 class Board:
     """A planar calibration target; `object_points()[i]` is the board point with id i."""
 
-    type: str
-    cols: int
-    rows: int
-    square: float
-    marker: float = 0.0
-    dictionary: str = ""
-    inverted: bool = False
-    source: str = "board.toml"
+    __pydantic_config__ = CLOSED   # unknown keys are errors
+
+    type: Annotated[BoardType, worded(f"is {{value}}, expected one of {', '.join(BOARD_TYPES)}")]
+    cols: Count
+    rows: Count
+    square: Annotated[Float, Field(gt=0), worded("must be a length in metres > 0, got {value}"),
+                      AfterValidator(_in_metres)]
+    marker: Annotated[Float, Field(ge=0), worded("must be a length in metres >= 0, got {value}")] = 0.0
+    dictionary: Annotated[Str, worded("must be a string, got {value}")] = ""
+    inverted: Annotated[Bool, worded("must be true or false, got {value}")] = False
+    source: Annotated[str, NOT_A_KEY] = "board.toml"
 
     @property
     def corner_grid(self) -> tuple[int, int]:
@@ -110,8 +124,6 @@ class Board:
         cols/rows/dictionary override the file's values, for the diagnosis of a board that
         matches nothing.
         """
-        import cv2
-
         if self.type == "chessboard":
             return None
         size = (cols or self.cols, rows or self.rows)
@@ -121,59 +133,34 @@ class Board:
         return cv2.aruco.GridBoard(size, self.marker, self.square - self.marker, dic)
 
 
+def _line(problem: Problem) -> str:
+    """A problem worded as board.toml and tags.json errors are: "key 'cols' must be ..."."""
+    if problem.kind == "extra_forbidden":
+        return f"unknown key '{problem.key}' (known: {', '.join(known_keys(Board))})"
+    if problem.kind == "missing":
+        hint = f" (one of {', '.join(BOARD_TYPES)})" if problem.key == "type" else ""
+        return f"key '{problem.key}' is missing{hint}"
+    return f"key '{problem.key}' {problem.text}"
+
+
 def board_from_dict(doc: dict, source: str = "board.toml") -> Board:
     """Validate a board table; every error names `source` and the key."""
-    unknown = sorted(set(doc) - _KEYS)
-    if unknown:
-        raise BoardError(f"{source}: unknown key '{unknown[0]}' (known: {', '.join(sorted(_KEYS))})")
-    if "type" not in doc:
-        raise BoardError(f"{source}: key 'type' is missing (one of {', '.join(BOARD_TYPES)})")
-    kind = doc["type"]
-    if kind not in BOARD_TYPES:
-        raise BoardError(f"{source}: key 'type' is {kind!r}, expected one of {', '.join(BOARD_TYPES)}")
-    values = {}
-    for key in ("cols", "rows"):
-        v = doc.get(key)
-        if v is None:
-            raise BoardError(f"{source}: key '{key}' is missing")
-        if not isinstance(v, int) or isinstance(v, bool) or v < 2:
-            raise BoardError(f"{source}: key '{key}' must be an integer >= 2, got {v!r}")
-        values[key] = v
-    if kind == "charuco" and min(values.values()) < 3:
+    board = validate(Board, doc, source, BoardError, _line)
+    kind, square, marker = board.type, board.square, board.marker
+    if kind == "charuco" and min(board.cols, board.rows) < 3:
         raise BoardError(f"{source}: a charuco board needs at least 3 squares in 'cols' and 'rows'")
-    for key in ("square", "marker"):
-        v = doc.get(key, 0.0)
-        if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
-            raise BoardError(f"{source}: key '{key}' must be a length in metres >= 0, got {v!r}")
-        values[key] = float(v)
-    if values["square"] <= 0:
-        raise BoardError(f"{source}: key 'square' must be > 0 metres")
-    if values["square"] > 1.0:
-        raise BoardError(f"{source}: key 'square' is {values['square']} m; lengths are in metres "
-                         f"(a 25 mm square is 0.025)")
+    if kind != "chessboard" and not 0 < marker < square + (1e-9 if kind == "charuco" else 0):
+        raise BoardError(f"{source}: key 'marker' must be > 0 and smaller than 'square' ({square} m), got {marker}")
+    dictionary = board.dictionary or ("DICT_APRILTAG_36h11" if kind == "apriltag-grid" else "")
     if kind != "chessboard":
-        if not 0 < values["marker"] < values["square"] + (1e-9 if kind == "charuco" else 0):
-            raise BoardError(f"{source}: key 'marker' must be > 0 and smaller than 'square' "
-                             f"({values['square']} m), got {values['marker']}")
-    dictionary = doc.get("dictionary", "")
-    if not isinstance(dictionary, str):
-        raise BoardError(f"{source}: key 'dictionary' must be a string, got {dictionary!r}")
-    if kind == "apriltag-grid" and not dictionary:
-        dictionary = "DICT_APRILTAG_36h11"
-    if kind != "chessboard":
-        names = dictionary_names()
-        if dictionary not in names:
+        if dictionary not in dictionary_names():
             raise BoardError(f"{source}: key 'dictionary' is {dictionary!r}, not an OpenCV dictionary "
                              f"(e.g. DICT_4X4_1000, DICT_APRILTAG_36h11)")
-        needed = (values["cols"] * values["rows"] + 1) // 2 if kind == "charuco" else values["cols"] * values["rows"]
+        needed = (board.cols * board.rows + 1) // 2 if kind == "charuco" else board.cols * board.rows
         size = len(get_dictionary(dictionary).bytesList)
         if needed > size:
             raise BoardError(f"{source}: the board needs {needed} markers but {dictionary} has {size}")
-    inverted = doc.get("inverted", False)
-    if not isinstance(inverted, bool):
-        raise BoardError(f"{source}: key 'inverted' must be true or false, got {inverted!r}")
-    return Board(kind, values["cols"], values["rows"], values["square"], values["marker"], dictionary,
-                 inverted, source)
+    return replace(board, dictionary=dictionary, source=source)
 
 
 def _read(path: Path, parse, what: str) -> dict:
@@ -223,22 +210,21 @@ def load_tags(path: str | os.PathLike) -> TagLayout:
     return tags_from_dict(_read(Path(path), json.loads, "tag layout"), str(path))
 
 
+@dataclass(frozen=True)
+class _TagsFile:
+    """tags.json as written; the corners are checked as arrays in tags_from_dict."""
+
+    family: Annotated[Literal[tuple(TAG_FAMILIES)], worded(f"is {{value}}, expected one of {', '.join(TAG_FAMILIES)}")]
+    size: Annotated[Float, Field(gt=0, lt=2), worded("must be the tag side in metres, got {value}")]
+    tags: Annotated[dict[str, Any], Field(min_length=1),
+                    worded("must be a non-empty object of tag id -> 4 corners")]
+
+
 def tags_from_dict(doc: dict, source: str = "tags.json") -> TagLayout:
     """Validate a tag layout; errors name the file and the key."""
-    for key in ("family", "size", "tags"):
-        if key not in doc:
-            raise BoardError(f"{source}: key '{key}' is missing")
-    family = doc["family"]
-    if family not in TAG_FAMILIES:
-        raise BoardError(f"{source}: key 'family' is {family!r}, expected one of {', '.join(TAG_FAMILIES)}")
-    size = doc["size"]
-    if not isinstance(size, (int, float)) or not 0 < size < 2:
-        raise BoardError(f"{source}: key 'size' must be the tag side in metres, got {size!r}")
-    tags = doc["tags"]
-    if not isinstance(tags, dict) or not tags:
-        raise BoardError(f"{source}: key 'tags' must be a non-empty object of tag id -> 4 corners")
+    layout = validate(_TagsFile, doc, source, BoardError, _line)
     ids, corners = [], []
-    for key, value in tags.items():
+    for key, value in layout.tags.items():
         try:
             tag_id = int(key)
             c = np.asarray(value, dtype=np.float64)
@@ -247,10 +233,10 @@ def tags_from_dict(doc: dict, source: str = "tags.json") -> TagLayout:
         if c.shape != (4, 3) or not np.isfinite(c).all():
             raise BoardError(f"{source}: key 'tags.{key}' must hold 4 corners [x, y, z], got shape {c.shape}")
         sides = np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)
-        if np.abs(sides - size).max() > 0.05 * size:
+        if np.abs(sides - layout.size).max() > 0.05 * layout.size:
             raise BoardError(f"{source}: key 'tags.{key}' has sides {np.round(sides, 4).tolist()} m, "
-                             f"not the tag size {size} m (units are metres)")
+                             f"not the tag size {layout.size} m (units are metres)")
         ids.append(tag_id)
         corners.append(c)
     order = np.argsort(ids)
-    return TagLayout(family, float(size), np.asarray(ids)[order], np.asarray(corners)[order], source)
+    return TagLayout(layout.family, layout.size, np.asarray(ids)[order], np.asarray(corners)[order], source)

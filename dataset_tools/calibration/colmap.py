@@ -15,15 +15,16 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pycolmap  # after cv2: a process that loads pycolmap's zlib first aborts in cv2's PNG writer
 
 from manus_core.cameras import CameraRig
-from .boards import CalibrationError, TagLayout
+from manus_core.errors import ColmapError
+
+from ..triangulation import triangulate
+from .boards import TagLayout
 from .detect import Detection
-
-
-class ColmapError(CalibrationError):
-    """COLMAP could not register the cameras, or the result cannot be put into the world frame."""
 
 
 def colmap_poses(images: dict[str, np.ndarray], intrinsics: dict[str, tuple[np.ndarray, np.ndarray]],
@@ -33,8 +34,6 @@ def colmap_poses(images: dict[str, np.ndarray], intrinsics: dict[str, tuple[np.n
 
     images: {camera: one image (grey or BGR uint8)}; intrinsics: {camera: (K (3,3), dist (5,))}.
     """
-    import cv2
-
     with tempfile.TemporaryDirectory(prefix="colmap-", dir=workdir) as tmp:
         tmp = Path(tmp)
         image_dir = tmp / "images"
@@ -49,8 +48,6 @@ def colmap_poses(images: dict[str, np.ndarray], intrinsics: dict[str, tuple[np.n
 
 
 def _run(tmp: Path, image_dir: Path, names: dict[str, str], intrinsics, max_features: int, threads: int):
-    import pycolmap
-
     pycolmap.set_random_seed(0)  # the same input gives the same model (RANSAC and sampling are seeded)
     db_path = tmp / "database.db"
     reader = pycolmap.ImageReaderOptions()
@@ -124,8 +121,6 @@ def align_to_tags(poses: dict[str, np.ndarray], intrinsics: dict[str, tuple[np.n
     seen by >= 2 registered cameras are triangulated in COLMAP's frame and matched to the layout;
     tags whose corners stay more than 3 x the median off after a first fit are dropped.
     """
-    from ..triangulation import triangulate
-
     cams = [c for c in poses if c in intrinsics]
     rig = CameraRig(tuple(cams), [intrinsics[c][0] for c in cams], [intrinsics[c][1] for c in cams],
                     [poses[c][:3, :3] for c in cams], [poses[c][:3, 3] for c in cams], [sizes[c] for c in cams])

@@ -15,25 +15,32 @@ Choices measured on the project's test data (docs/calibration.md has the numbers
 - Chessboards: findChessboardCornersSB finds the board, then cornerSubPix refines each corner with
   a window of 0.3 x its distance to the nearest neighbour corner. A fixed 11x11 window (OpenCV's
   sample) reaches past the squares of strongly foreshortened views and moves corners by ~1 px.
+
+detect_source and detect_cameras run a detector over the frames of frames.FrameSource (one
+process per camera); diagnose.py says why a board is found nowhere.
 """
+
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Callable, Sequence
 
+import cv2
 import numpy as np
 
-from .boards import Board, CalibrationError, get_dictionary
 from manus_core.errors import DetectionError
+from manus_core.progress import Progress, silent
+
+from .boards import Board, get_dictionary
+from .frames import FrameSource, read_frames, to_gray
+from .tag_edges import refine_tag_corners
 
 _SUBPIX_CRITERIA = (3, 50, 1e-3)  # cv2.TERM_CRITERIA_EPS | COUNT, 50 iterations, 1e-3 px
 _SUBPIX_FRACTION = 0.3            # half-window as a fraction of the local corner spacing
-VIDEO_SUFFIXES = {".mkv", ".mp4", ".avi", ".mov", ".webm"}
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
 
 
 @dataclass(frozen=True)
@@ -57,17 +64,6 @@ class Detection:
     def empty() -> "Detection":
         return Detection(np.zeros(0, np.int64), np.zeros((0, 2)), {})
 
-
-def to_gray(image: np.ndarray) -> np.ndarray:
-    """8-bit grey image from grey, BGR or BGRA input."""
-    import cv2
-
-    image = np.asarray(image)
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    if image.dtype != np.uint8:
-        raise DetectionError(f"images must be 8-bit, got {image.dtype}")
-    return image
 
 
 class TagDetector:
@@ -101,8 +97,6 @@ class TagDetector:
 
     @property
     def _detector(self):
-        import cv2
-
         if self._cv is None:
             params = cv2.aruco.DetectorParameters()
             params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_APRILTAG
@@ -116,8 +110,6 @@ class TagDetector:
         Quality: side_px (shortest side), decoded_at (1, or the upsampling of the pass that
         decoded it), fitted (per corner: re-fitted from the edges; always true with "apriltag").
         """
-        import cv2
-
         gray = to_gray(image)
         if self.inverted:
             gray = 255 - gray
@@ -146,8 +138,6 @@ class TagDetector:
         quads_arr = np.array(quads).reshape(-1, 4, 2)
         refined = np.ones(quads_arr.shape[:2], bool)
         if self.refine == "edges" and len(quads_arr):
-            from .tag_edges import refine_tag_corners
-
             fitted = refine_tag_corners(gray, quads_arr, self.K, self.dist)
             # corners whose edges could not be fitted (cut by the image border, occluded) come
             # back unchanged, i.e. in the AprilTag convention: flagged, and left out of `detect`
@@ -198,8 +188,6 @@ def refine_grid_corners(gray: np.ndarray, xy: np.ndarray, cols: int, rows: int) 
 
 def refine_corners(gray: np.ndarray, xy: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     """cornerSubPix with half-window 0.3 x spacing per corner (grouped by window size)."""
-    import cv2
-
     half = np.clip((_SUBPIX_FRACTION * spacing).astype(int), 2, 15)
     out = np.asarray(xy, np.float32).reshape(-1, 2).copy()
     for w in np.unique(half):
@@ -214,8 +202,6 @@ class BoardDetector:
 
     def __init__(self, board: Board, inverted: bool | None = None, upsample: int = 2, quick: bool = False) -> None:
         """quick: only whether the board is there (chessboards: no exhaustive search, no refinement)."""
-        import cv2
-
         self.quick = quick
         self.board = board
         self.inverted = board.inverted if inverted is None else inverted
@@ -227,8 +213,6 @@ class BoardDetector:
             self._tags = TagDetector(board.dictionary, upsample=upsample)
 
     def detect(self, image: np.ndarray) -> Detection:
-        import cv2
-
         gray = to_gray(image)
         if self.inverted:
             gray = 255 - gray
@@ -273,133 +257,7 @@ def _median_spacing(board: Board, ids: np.ndarray, xy: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(xy[a[ok]] - xy[b[ok]], axis=1)))
 
 
-# --- frames from files ------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class FrameSource:
-    """Where one camera's frames come from: image files, one video, a camera of a take folder
-    (paths = (take folder,), camera = its id), or images in memory.
-
-    frames: the frame indices to read (None: all). Files are described rather than read, so that
-    worker processes read the frames themselves.
-    """
-
-    paths: tuple[str, ...] = ()
-    frames: tuple[int, ...] | None = None
-    arrays: tuple[np.ndarray, ...] | None = None
-    camera: str | None = None
-
-    @property
-    def name(self) -> str:
-        if self.camera is not None:
-            return f"{self.paths[0]} camera {self.camera}"
-        return self.paths[0] if self.paths else "images in memory"
-
-    @property
-    def is_video(self) -> bool:
-        return (self.arrays is None and self.camera is None and len(self.paths) == 1
-                and Path(self.paths[0]).suffix.lower() in VIDEO_SUFFIXES)
-
-    def count(self) -> int:
-        """Number of frames the source holds."""
-        if self.camera is not None:
-            from manus_core.take import Take
-
-            return Take(self.paths[0]).frame_count(self.camera)
-        if self.is_video:
-            return video_frame_count(self.paths[0])
-        return len(self.arrays) if self.arrays is not None else len(self.paths)
-
-
-def video_frame_count(path: str | os.PathLike) -> int:
-    """Number of frames in a video (counted by decoding when the container does not say)."""
-    import cv2
-
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise DetectionError(f"{path}: cannot open video")
-    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-    if n <= 0:
-        n = 0
-        while cap.grab():
-            n += 1
-    cap.release()
-    return n
-
-
-def read_frames(source: FrameSource) -> Iterator[tuple[int, np.ndarray]]:
-    """(frame index, grey image) for every frame of a source, in order."""
-    import cv2
-
-    if source.camera is not None:
-        # a take: JPEG packets are skipped undecoded, only the wanted frames are decoded
-        from manus_core.take import Take
-
-        wanted = None if source.frames is None else set(source.frames)
-        last = None if wanted is None else max(wanted, default=-1)
-        for index, packet in enumerate(Take(source.paths[0]).packets(source.camera)):
-            if last is not None and index > last:
-                break
-            if wanted is None or index in wanted:
-                image = cv2.imdecode(packet, cv2.IMREAD_GRAYSCALE)
-                if image is None:
-                    raise DetectionError(f"{source.name}: frame {index} is not a decodable JPEG")
-                yield index, image
-        return
-    if source.is_video:
-        path = source.paths[0]
-        cap = cv2.VideoCapture(path)
-        if not cap.isOpened():
-            raise DetectionError(f"{path}: cannot open video")
-        wanted = None if source.frames is None else set(source.frames)
-        last = None if wanted is None else max(wanted, default=-1)
-        index = 0
-        try:
-            while last is None or index <= last:
-                if wanted is not None and index not in wanted:
-                    if not cap.grab():
-                        break
-                else:
-                    ok, frame = cap.read()
-                    if not ok:
-                        break
-                    yield index, to_gray(frame)
-                index += 1
-        finally:
-            cap.release()
-        return
-    count = len(source.arrays) if source.arrays is not None else len(source.paths)
-    for index in range(count) if source.frames is None else sorted(set(source.frames)):
-        if not 0 <= index < count:
-            continue
-        if source.arrays is not None:
-            yield index, to_gray(source.arrays[index])
-            continue
-        image = cv2.imread(source.paths[index], cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise DetectionError(f"{source.paths[index]}: not a readable image")
-        yield index, image
-
-
-def expand_inputs(paths: Iterable[str | os.PathLike]) -> FrameSource:
-    """Image files, folders of images, or one video -> FrameSource (sorted, checked)."""
-    files: list[str] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            files += sorted(str(f) for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES | VIDEO_SUFFIXES)
-        elif p.exists():
-            files.append(str(p))
-        else:
-            raise DetectionError(f"{p}: no such file")
-    if not files:
-        raise DetectionError("no images or videos given")
-    videos = [f for f in files if Path(f).suffix.lower() in VIDEO_SUFFIXES]
-    if videos and len(files) > 1:
-        raise DetectionError(f"{videos[0]}: give one video, or image files, not both")
-    return FrameSource(tuple(files))
-
-
-# --- many cameras in parallel -----------------------------------------------------------------
+# --- detection over frames, many cameras in parallel ------------------------------------------
 
 Target = Board | TagDetector
 
@@ -408,25 +266,26 @@ def _detector_for(target: Target) -> Callable[[np.ndarray], Detection]:
     return target.detect if isinstance(target, TagDetector) else BoardDetector(target).detect
 
 
-def subsample(source: FrameSource, count: int) -> FrameSource:
-    """At most `count` frames of a source, evenly spread (every frame when there are fewer)."""
-    n = source.count()
-    if n <= count:
-        return source
-    frames = tuple(int(i) for i in np.unique(np.linspace(0, n - 1, count).round()))
-    return FrameSource(source.paths, frames, source.arrays, source.camera)
+def _stage(target: Target) -> str:
+    """The progress stage that detecting `target` reports."""
+    return "tag detection" if isinstance(target, TagDetector) else "board detection"
 
 
-def detect_source(source: FrameSource, target: Target, on_frame: Callable[[], None] | None = None
+def detect_source(source: FrameSource, target: Target, progress: Progress = silent
                   ) -> tuple[dict[int, Detection], tuple[int, int]]:
     """Detect the target in every frame of one source: ({frame index: Detection}, (width, height)).
 
+    progress("board detection" or "tag detection", frames done, frames to read) after each
+    frame (no total for a whole video: counting its frames would mean decoding it twice).
     Raises DetectionError when the frames do not all have the same size.
     """
     detect = _detector_for(target)
+    stage = _stage(target)
+    total = len(source.frames) if source.frames is not None else None if source.is_video else source.count()
+    progress(stage, 0, total)
     found: dict[int, Detection] = {}
     size = None
-    for index, gray in read_frames(source):
+    for done, (index, gray) in enumerate(read_frames(source), start=1):
         shape = (gray.shape[1], gray.shape[0])
         if size is None:
             size = shape
@@ -438,16 +297,13 @@ def detect_source(source: FrameSource, target: Target, on_frame: Callable[[], No
         det = detect(gray)
         if len(det):
             found[index] = det
-        if on_frame is not None:
-            on_frame()
+        progress(stage, done, total)
     if size is None:
         raise DetectionError(f"{source.name}: no frames could be read")
     return found, size
 
 
 def _detect_job(args):
-    import cv2
-
     name, source, target, threads = args
     if threads is not None:
         cv2.setNumThreads(threads)  # one process per camera already fills the cores
@@ -458,16 +314,19 @@ def _detect_job(args):
 
 
 def detect_cameras(sources: dict[str, FrameSource], target: Target | dict[str, Target], workers: int | None = None,
-                   progress: Callable[[str], None] | None = None
+                   progress: Progress = silent
                    ) -> tuple[dict[str, dict[int, Detection]], dict[str, tuple[int, int]]]:
     """Detect a target (or one per camera) in every camera's frames, one process per camera.
 
+    progress("board detection" or "tag detection", cameras done, cameras) as each camera ends.
     Returns ({camera: {frame index: Detection}}, {camera: (width, height)}). Raises
     DetectionError naming every camera whose frames could not be read or differ in size.
     """
     workers = min(len(sources), workers or os.cpu_count() or 1)
     targets = target if isinstance(target, dict) else {name: target for name in sources}
     jobs = [(name, src, targets[name], None if workers <= 1 else 1) for name, src in sources.items()]
+    stage = _stage(next(iter(targets.values()))) if targets else "detection"
+    progress(stage, 0, len(jobs))
     results: dict[str, dict[int, Detection]] = {}
     sizes: dict[str, tuple[int, int]] = {}
     errors: list[str] = []
@@ -475,21 +334,18 @@ def detect_cameras(sources: dict[str, FrameSource], target: Target | dict[str, T
         outputs = map(_detect_job, jobs)
         executor = None
     else:
-        import multiprocessing
-
         # spawn, not fork: a child forked after OpenCV's video decoder or thread pool ran in the
         # parent can deadlock on a lock held at fork time (seen here). Scripts that call this need
         # the usual `if __name__ == "__main__":` guard.
         executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
         outputs = executor.map(_detect_job, jobs)
     try:
-        for name, out, err in outputs:
+        for done, (name, out, err) in enumerate(outputs, start=1):
             if err:
                 errors.append(f"camera {name}: {err}")
             else:
                 results[name], sizes[name] = out
-            if progress:
-                progress(name)
+            progress(stage, done, len(jobs))
     finally:
         if executor is not None:
             executor.shutdown()
@@ -501,80 +357,3 @@ def detect_cameras(sources: dict[str, FrameSource], target: Target | dict[str, T
 def detect_images(images: Sequence[np.ndarray], target: Target) -> dict[int, Detection]:
     """Detect a target in in-memory images: {image index: Detection} (images without it left out)."""
     return detect_source(FrameSource(arrays=tuple(images)), target)[0]
-
-
-def diagnose_board(images: Sequence[np.ndarray], board: Board) -> str:
-    """Why `board` is found in none of `images`: the usual mistakes tried one by one.
-
-    Returns one sentence naming the parameter of board.toml that is likely wrong (the most common
-    complaint about anipose and FreeMoCap is a board silently matching nothing).
-    """
-    import cv2
-    from dataclasses import replace
-
-    grays = [to_gray(i) for i in images]
-    n = len(grays)
-    b = board
-    c, r = b.cols, b.rows
-    low = 2 if b.type != "charuco" else 3
-    shapes = [(c, r), (r, c), (c - 1, r - 1), (r - 1, c - 1), (c + 1, r + 1), (r + 1, c + 1)]
-    best, best_points = None, 0
-    # the print's polarity last: ties go to the variant that keeps it
-    for inverted in (b.inverted, not b.inverted):
-        for cols, rows in dict.fromkeys(s for s in shapes if min(s) >= low):
-            variant = replace(b, cols=cols, rows=rows, inverted=inverted)
-            if variant == b:
-                continue
-            det = BoardDetector(variant, quick=True)
-            points = sum(len(d) for d in map(det.detect, grays) if _planar_fit(d, variant))
-            if points > best_points:
-                best, best_points = variant, points
-    if best is not None:
-        changes = [f"{k} = {str(getattr(best, k)).lower() if k == 'inverted' else getattr(best, k)}"
-                   for k in ("cols", "rows", "inverted") if getattr(best, k) != getattr(b, k)]
-        hint = ""
-        if (best.cols, best.rows) != (c, r) and {best.cols, best.rows} != {c, r}:
-            hint = (" (a chessboard's cols and rows count inner corners)" if b.type == "chessboard" else
-                    " (a charuco board's cols and rows count squares)" if b.type == "charuco" else "")
-        elif (best.cols, best.rows) == (r, c):
-            hint = " (cols and rows swapped)"
-        return (f"{b.source}: the board is found in none of {n} images as described, but with "
-                f"{', '.join(changes)}{hint} it is ({best_points} points)")
-    if b.type == "chessboard":
-        return (f"{b.source}: no {b.cols}x{b.rows} chessboard in {n} images, nor with the usual mistakes "
-                f"(swapped, squares instead of inner corners, inverted): is the board in view, sharp and evenly lit?")
-    counts = {}
-    for name in (b.dictionary, *_COMMON_DICTIONARIES):
-        det = cv2.aruco.ArucoDetector(get_dictionary(name))
-        for inv in (False, True):
-            counts[(name, inv)] = sum(len(det.detectMarkers(255 - g if inv else g)[0]) for g in grays)
-    # ties: the larger dictionary (DICT_4X4_1000 holds every marker of DICT_4X4_50)
-    (best, inv), found = max(counts.items(), key=lambda kv: (kv[1], len(get_dictionary(kv[0][0]).bytesList)))
-    if found == 0:
-        return f"{b.source}: no marker of any common dictionary in {n} images: is the board in view, sharp and evenly lit?"
-    if best != b.dictionary:
-        return (f"{b.source}: {found} markers of {best} but {counts[(b.dictionary, b.inverted)]} of {b.dictionary} "
-                f"were found: set dictionary = \"{best}\"" + (f" and inverted = {str(inv).lower()}" if inv != b.inverted else ""))
-    return (f"{b.source}: markers of {b.dictionary} are found ({found}) but never the board: check cols, rows, "
-            f"square and marker (boards made by OpenCV before 4.6 with an even number of rows use the old "
-            f"'legacy' layout)")
-
-
-# Dictionaries people print boards from, tried when a board matches nothing.
-_COMMON_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_1000", "DICT_5X5_100", "DICT_5X5_1000", "DICT_6X6_250",
-                        "DICT_6X6_1000", "DICT_7X7_1000", "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_36h11")
-
-
-def _planar_fit(det: Detection, board: Board, tol_px: float = 3.0) -> bool:
-    """True when the detected points fit one homography of the board plane (a real board, not
-    corners interpolated from markers of a board with another layout)."""
-    import cv2
-
-    if len(det) < 6:
-        return False
-    obj = board.object_points()[det.ids, :2]
-    H, _ = cv2.findHomography(obj, det.xy, 0)
-    if H is None:
-        return False
-    proj = cv2.perspectiveTransform(obj.reshape(-1, 1, 2), H).reshape(-1, 2)
-    return bool(np.median(np.linalg.norm(proj - det.xy, axis=1)) < tol_px)

@@ -17,9 +17,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from manus_core.cameras import CameraRig
+
+from ..triangulation import triangulate
 
 RATIO = 0.75           # Lowe's ratio test
 MIN_PAIR_MATCHES = 15  # fewer verified matches with one camera: that camera does not share the view
@@ -40,23 +43,17 @@ class SceneAnchors:
 
 def _features(gray: np.ndarray, max_features: int) -> tuple[np.ndarray, np.ndarray]:
     """(xy (N,2), descriptors (N,128)) of SIFT keypoints."""
-    import cv2
-
     kp, des = cv2.SIFT_create(nfeatures=max_features).detectAndCompute(gray, None)
     xy = np.array([k.pt for k in kp], np.float64).reshape(-1, 2)
     return xy, (des if des is not None else np.zeros((0, 128), np.float32))
 
 
 def _undistorted(xy: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    import cv2
-
     return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
 
 
 def _verified_matches(xy_a, des_a, xy_b, des_b, Ka, da, Kb, db) -> tuple[np.ndarray, np.ndarray]:
     """Indices (ia, ib) of matches that pass the ratio test and the epipolar geometry."""
-    import cv2
-
     if len(des_a) < 2 or len(des_b) < 2:
         return np.zeros(0, int), np.zeros(0, int)
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(des_a, des_b, k=2)  # OpenCV hands matches out as objects
@@ -82,10 +79,6 @@ def scene_anchors(images: dict[str, np.ndarray], calibrated: CameraRig, targets:
     one frame per camera); calibrated: the cameras already placed; targets: {camera: (K, dist)}.
     Returns the targets that could be placed (enough verified points); the others are left out.
     """
-    import cv2
-
-    from ..triangulation import triangulate
-
     cams = [c for c in calibrated.ids if c in images]
     if len(cams) < 2 or not targets:
         return {}

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
-from .boards import Board, CalibrationError
-from .detect import Detection
 from manus_core.errors import IntrinsicsError
+
+from .boards import Board
+from .detect import Detection
 
 MIN_POINTS_PER_VIEW = 6
 MIN_VIEWS = 4
@@ -96,8 +98,6 @@ def calibrate_intrinsics(detections: dict[int, Detection], board: Board, size: t
 
     Raises IntrinsicsError naming `camera` when there are too few usable views.
     """
-    import cv2
-
     usable = {f: d for f, d in detections.items() if len(d) >= MIN_POINTS_PER_VIEW}
     if len(usable) < MIN_VIEWS:
         raise IntrinsicsError(

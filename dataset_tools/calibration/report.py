@@ -14,10 +14,14 @@ import json
 from pathlib import Path
 
 import numpy as np
+from matplotlib.figure import Figure
 
-from manus_core.fileio import write_atomic
 from manus_core.cameras import CameraRig
-from .extrinsics import RigCalibration, rotation_angle_deg
+from manus_core.fileio import write_atomic
+from manus_core.rotations import rotation_angle_deg
+
+from ..triangulation import triangulate
+from .result import RigCalibration
 
 
 def scale_check(result: RigCalibration, pairs: np.ndarray, true_distance: float, static: bool = False) -> dict:
@@ -37,8 +41,6 @@ def triangulation_check(rig: CameraRig, cam: np.ndarray, frame: np.ndarray, poin
     "median_px" (reprojection of the triangulated points), "pairs", "mean_m", "std_m", "true_m",
     "error_pct"}, or {} when nothing is seen twice.
     """
-    from ..triangulation import triangulate
-
     n_points = int(point.max()) + 1
     keys = np.asarray(frame, np.int64) * n_points + point
     uniq, inverse = np.unique(keys, return_inverse=True)
@@ -152,15 +154,10 @@ def report_markdown(report: dict) -> str:
 
 def layout_png(result: RigCalibration, points: np.ndarray | None = None) -> bytes:
     """PNG of the camera centres and viewing directions, coloured by reprojection RMS."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rig = result.rig
     centres = rig.centers
     rms = np.array([result.stats[c].rms_px for c in rig.ids])
-    fig = plt.figure(figsize=(7, 6), dpi=110)
+    fig = Figure(figsize=(7, 6), dpi=110)  # no pyplot: no global backend or figure list to manage
     ax = fig.add_subplot(projection="3d")
     if points is not None and len(points):
         ax.scatter(*points.T, s=2, c="0.6", label="targets")
@@ -184,7 +181,6 @@ def layout_png(result: RigCalibration, points: np.ndarray | None = None) -> byte
     ax.set_title(f"{len(rig)} cameras, RMS {result.rms_px:.3f} px")
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
-    plt.close(fig)
     return buf.getvalue()
 
 

@@ -1,9 +1,9 @@
 """calibrate_rig: every camera of a take (or of per-camera image lists) in one call.
 
 Methods:
-- "tags": tag PnP per camera and one bundle adjustment (extrinsics.calibrate_tag_rig); cameras
+- "tags": tag PnP per camera and one bundle adjustment (tag_rig.calibrate_tag_rig); cameras
   short of tags are then resected from scene features the others triangulate (features.py);
-- "board": a board seen by several cameras at once (extrinsics.calibrate_board_rig);
+- "board": a board seen by several cameras at once (board_rig.calibrate_board_rig);
 - "colmap": COLMAP structure from motion, moved into the tag world frame (colmap.py);
 - "both": COLMAP and tags; cameras short of tags that the scene features cannot place keep their
   COLMAP pose inside the tag adjustment, and the report compares the two methods camera by camera;
@@ -15,17 +15,30 @@ the same take.
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from .boards import Board, BoardError, CalibrationError, TagLayout, load_board, load_tags
-from .detect import Detection, FrameSource, TagDetector, detect_cameras, diagnose_board, read_frames, subsample
-from .extrinsics import RigCalibration, calibrate_board_rig, calibrate_tag_rig, evaluate_tag_rig, require_all
-from .intrinsics import IntrinsicsError, calibrate_intrinsics
+from manus_core.errors import BoardError, CalibrationError, ColmapError, IntrinsicsError
+from manus_core.progress import Progress, silent
+from manus_core.take import Take
+
+from ..sync import frame_groups
+from .board_rig import calibrate_board_rig
+from .boards import Board, TagLayout, load_board, load_tags
+from .colmap import align_to_tags, colmap_poses
+from .detect import Detection, TagDetector, detect_cameras
+from .diagnose import diagnose_board
+from .features import scene_anchors
+from .formats import load_cameras, save_cameras
+from .frames import FrameSource, read_frames, subsample
+from .intrinsics import calibrate_intrinsics
 from .report import build_report, cross_check, scale_check, write_report
+from .result import RigCalibration, require_all
+from .tag_rig import SceneCallback, calibrate_tag_rig, evaluate_tag_rig
 
 METHODS = ("auto", "tags", "board", "colmap", "both")
 EXPORTS = (("colmap", "colmap"), ("opencv-yaml", "cameras.yml"), ("easymocap", "easymocap"),
@@ -40,7 +53,7 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
                   method: str = "auto", intrinsics: CameraRig | str | os.PathLike | None = None,
                   allow_partial: bool = False, tag_frames: int = 5, board_frames: int = 200,
                   refine_tags: bool = False, workers: int | None = None, output: str | os.PathLike | None = None,
-                  force: bool = False, progress: Callable[[str, int, int], None] | None = None) -> RigCalibration:
+                  force: bool = False, progress: Progress = silent) -> RigCalibration:
     """Calibrate every camera; write cameras.json, exports and the report when `output` is given.
 
     images: {camera: image paths, in-memory images, or one video path}; or take: a take folder.
@@ -48,23 +61,11 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
     their host timestamps). tag_frames / board_frames: how many frames per camera are used.
     workers: processes for the detection and threads for COLMAP (None: all cores; 1 makes COLMAP's
     model the same on every run).
+    progress(stage, done, total): "board detection" and "tag detection" count cameras; the other
+    stages (COLMAP, the adjustments, scene features) report (stage, 0, 1) as they start.
     Raises CalibrationError (and friends) naming the cameras when the input cannot be used;
     with allow_partial the cameras that cannot be calibrated are left out and the result says so.
     """
-    report_progress = progress or (lambda _stage, _done, _total: None)
-
-    def say(stage: str) -> None:
-        report_progress(stage, 0, 1)
-
-    def per_camera(stage: str, total: int) -> Callable[[str], None]:
-        done = []
-        report_progress(stage, 0, total)
-
-        def tick(_cam: str) -> None:
-            done.append(_cam)
-            report_progress(stage, len(done), total)
-        return tick
-
     layout = load_tags(tags) if isinstance(tags, (str, os.PathLike)) else tags
     target = load_board(board) if isinstance(board, (str, os.PathLike)) else board
     if method not in METHODS:
@@ -88,18 +89,17 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
     board_dets = sizes = None
     if target is not None and (method == "board" or fixed is None):
         board_src = {c: subsample(s, board_frames) for c, s in sources.items() if c not in problems}
-        board_dets, sizes = detect_cameras(board_src, target, workers, per_camera("board detection", len(board_src)))
+        board_dets, sizes = detect_cameras(board_src, target, workers, progress)
         board_dets = {c: {sync[c](f): d for f, d in dets.items()} for c, dets in board_dets.items()}
         _no_board(board_dets, board_src, target, problems)
     if method == "board":
         require_all(cams, problems, allow_partial)
         keep = {c: d for c, d in board_dets.items() if c not in problems}
         given = {c: fixed[c] for c in keep} if fixed is not None else None
-        say("bundle adjustment of cameras, intrinsics and board poses")
+        progress("bundle adjustment of cameras, intrinsics and board poses", 0, 1)
         result = calibrate_board_rig(keep, sizes, target, intrinsics=given, refine_intrinsics=given is None,
                                      allow_partial=allow_partial)
-        result.missing.update(problems)
-        result.partial = bool(result.missing)
+        result = _with_missing(result, problems)
         checks["scale"] = scale_check(result, target.neighbour_pairs(), target.neighbour_distance())
     else:
         intr = fixed if fixed is not None else _board_intrinsics(board_dets, sizes, target, problems)
@@ -109,13 +109,11 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
         require_all(cams, problems, allow_partial)
         tag_src = {c: subsample(sources[c], tag_frames) for c in cams if c in intr}
         detectors = {c: TagDetector(layout.dictionary, K=intr[c][0], dist=intr[c][1]) for c in tag_src}
-        tag_dets, tag_sizes = detect_cameras(tag_src, detectors, workers, per_camera("tag detection", len(tag_src)))
+        tag_dets, tag_sizes = detect_cameras(tag_src, detectors, workers, progress)
         _check_sizes(tag_sizes, intr)
         initial, colmap_rig = {}, None
         if method in ("colmap", "both"):
-            from .colmap import ColmapError
-
-            say("COLMAP: features, matching, mapping")
+            progress("COLMAP: features, matching, mapping", 0, 1)
             try:
                 colmap_rig, info = _colmap(tag_src, tag_dets, tag_sizes, intr, layout, workers)
             except ColmapError as exc:
@@ -130,23 +128,28 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
             lost = {c: "not registered by COLMAP" for c in intr if c not in colmap_rig.ids}
             problems.update(lost)
             require_all(cams, problems, allow_partial)
-            result.missing, result.partial = problems, bool(problems)
+            result = _with_missing(result, problems)
         else:
-            say("tag PnP and bundle adjustment")
+            progress("tag PnP and bundle adjustment", 0, 1)
             result = calibrate_tag_rig(tag_dets, tag_sizes, layout, intr, refine_tags=refine_tags,
                                        allow_partial=allow_partial, initial_poses=initial or None,
-                                       scene=_scene(tag_src, tag_dets, say))
-            result.missing.update(problems)
-            result.partial = bool(result.missing)
+                                       scene=_scene(tag_src, tag_dets, progress))
+            result = _with_missing(result, problems)
             if colmap_rig is not None:
                 checks["cross_check"] = cross_check(evaluate_tag_rig(colmap_rig, tag_dets, layout, "colmap"), result)
-                result.method = "both"
+                result = replace(result, method="both")
         checks["scale"] = scale_check(result, layout.edge_pairs(), layout.size, static=True)
     result.extra["checks"] = checks
     report = build_report(result, inputs, checks)
     if output is not None:
         _write_outputs(result, report, Path(output), layout)
     return result
+
+
+def _with_missing(result: RigCalibration, problems: dict[str, str]) -> RigCalibration:
+    """The result with the cameras left out before it was computed added to those it left out."""
+    missing = {**result.missing, **problems}
+    return replace(result, missing=missing, partial=bool(missing))
 
 
 def _sources(images: Images | None, take) -> tuple[dict[str, FrameSource], dict[str, Callable[[int], int]]]:
@@ -173,23 +176,20 @@ def _identity(i: int) -> int:
 
 
 def _take_sources(path: Path) -> tuple[dict[str, FrameSource], dict[str, Callable[[int], int]]]:
-    """A take's videos; frames of different cameras are grouped on the nominal tick of their host
-    timestamp (the sync stage does this properly; calibration needs only the grouping)."""
-    from manus_core.take import Take
-
+    """A take's videos, and per camera its frame index -> the frame group of the sync stage
+    (dataset_tools.sync.frame_groups: the groups its sync report saved, or computed the same way).
+    A frame in no group gets a key of its own, so it is never paired with another camera's."""
     take = Take(path)
+    groups = frame_groups(take)
     sources, sync = {}, {}
-    fps = take.fps
-    t0 = min(int(take.camera_frames(c)["t_host_ns"][0]) for c in take.cameras if take.frame_count(c))
-    for cam in take.cameras:
+    for c, cam in enumerate(groups.cameras):
         take.video_path(cam)  # a missing video is named now, not in a worker
         sources[cam] = FrameSource((str(path),), camera=cam)
-        t = take.camera_frames(cam)["t_host_ns"]
-        if fps:
-            ticks = np.round((t - t0) * fps / 1e9).astype(np.int64)
-            sync[cam] = ticks.__getitem__
-        else:
-            sync[cam] = _identity
+        count = take.frame_count(cam)
+        key = len(groups.frame_ns) + c * count + np.arange(count, dtype=np.int64)
+        member = np.flatnonzero(groups.frame_index[:, c] >= 0)
+        key[groups.frame_index[member, c]] = member
+        sync[cam] = key.__getitem__
     return sources, sync
 
 
@@ -197,8 +197,6 @@ def _fixed_intrinsics(intrinsics, cams: list[str], allow_partial: bool) -> dict[
     if intrinsics is None:
         return None
     if not isinstance(intrinsics, CameraRig):
-        from .formats import load_cameras
-
         intrinsics = load_cameras(intrinsics)
     out = {c: (intrinsics.K[i], intrinsics.dist[i]) for i, c in enumerate(intrinsics.ids) if c in cams}
     missing = [c for c in cams if c not in out]
@@ -255,8 +253,6 @@ def _colmap(sources, tag_dets, sizes, intr, layout, workers: int | None):
     `workers` threads (all cores when None). One thread gives the same model on every run: COLMAP
     is seeded, but its threads finish in any order (the alignment to the tags measured 1.9-2.8 mm
     RMS over runs on all cores, and 5.6 mm once under load)."""
-    from .colmap import align_to_tags, colmap_poses
-
     images, dets = {}, {}
     for cam, src in sources.items():
         frame, images[cam] = _best_frame(src, tag_dets.get(cam, {}))
@@ -273,14 +269,12 @@ def _best_frame(source: FrameSource, found: dict[int, Detection]) -> tuple[int, 
 
 
 def _scene(sources: dict[str, FrameSource], tag_dets: dict[str, dict[int, Detection]],
-           say: Callable[[str], None]) -> Callable:
-    """extrinsics.calibrate_tag_rig's `scene`: one image per camera, read only when a camera is
+           progress: Progress) -> SceneCallback:
+    """tag_rig.calibrate_tag_rig's `scene`: one image per camera, read only when a camera is
     short of tags. (The mean of a static camera's frames, with less noise, placed the cameras no
     better: what limits them is the few, weak features they share with the others.)"""
     def anchors(calibrated: CameraRig, targets: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
-        from .features import scene_anchors
-
-        say(f"scene features for {len(targets)} camera(s) short of tags")
+        progress(f"scene features for {len(targets)} camera(s) short of tags", 0, 1)
         images = {c: _best_frame(sources[c], tag_dets.get(c, {}))[1] for c in (*calibrated.ids, *targets)
                   if c in sources}
         return scene_anchors(images, calibrated, targets)
@@ -295,8 +289,6 @@ def _pose(rig: CameraRig, cam: str) -> np.ndarray:
 
 
 def _write_outputs(result: RigCalibration, report: dict, folder: Path, layout: TagLayout | None) -> None:
-    from .formats import save_cameras
-
     folder.mkdir(parents=True, exist_ok=True)
     exported = {}
     for fmt, name in EXPORTS:

@@ -29,15 +29,19 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
 
+from manus_core.errors import BoneLengthError
 from manus_core.fileio import write_atomic
 from manus_core.skeleton import BONES, DEFAULT_BONE_LENGTHS, JOINT_NAMES, HandSkeleton
-from manus_core.errors import BoneLengthError
+from manus_core.validation import Float, Int, Str, validate, worded
 
 BONE_NAMES = tuple(f"{JOINT_NAMES[a]}-{JOINT_NAMES[b]}" for a, b in BONES)
 SUBJECT_FORMAT_VERSION = 1
+PerBone = Field(min_length=len(BONES), max_length=len(BONES))
 
 
 @dataclass
@@ -153,8 +157,26 @@ def save_subject(path: str | Path, subject: str, bones: BoneLengths, takes: Sequ
     return path
 
 
+@dataclass(frozen=True)
+class _SubjectFile:
+    """A subject file as written (subject, units, bone_names and software are not read back)."""
+
+    version: Annotated[Literal[SUBJECT_FORMAT_VERSION],
+                       worded(f"is {{value}}, this software reads {SUBJECT_FORMAT_VERSION}")]
+    bone_lengths: Annotated[tuple[Annotated[Float, Field(gt=0)], ...], PerBone,
+                            worded(f"must be {len(BONES)} positive numbers, got {{value}}")]
+    spread_m: Annotated[tuple[Float | None, ...], PerBone] = (None,) * len(BONES)
+    samples: Annotated[tuple[Annotated[Int, Field(ge=0)], ...], PerBone] = (0,) * len(BONES)
+    estimated: tuple[Annotated[Literal[BONE_NAMES], worded("{value} is not a bone name (wrist-thumb_cmc ... "
+                                                           "pinky_dip-pinky_tip)")], ...] = ()
+    scale: Annotated[Float, Field(gt=0)] = 1.0
+    method: Str = ""
+    max_error_px: Float | None = None
+    takes: tuple[Str, ...] = ()
+
+
 def load_subject(path: str | Path) -> BoneLengths:
-    """Read a subject file; BoneLengthError names the file and the problem."""
+    """Read a subject file; BoneLengthError names the file, the key and the problem."""
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
@@ -162,19 +184,7 @@ def load_subject(path: str | Path) -> BoneLengths:
         raise BoneLengthError(f"{path}: no such subject file") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise BoneLengthError(f"{path}: not valid JSON ({exc})") from None
-    try:
-        if doc["version"] != SUBJECT_FORMAT_VERSION:
-            raise BoneLengthError(f"{path}: version {doc['version']!r}, this software reads {SUBJECT_FORMAT_VERSION}")
-        lengths = np.array(doc["bone_lengths"], dtype=np.float64)
-        if lengths.shape != (20,) or not (np.isfinite(lengths) & (lengths > 0)).all():
-            raise BoneLengthError(f"{path}: bone_lengths must be 20 positive numbers")
-        spread = np.array([np.nan if x is None else x for x in doc.get("spread_m", [None] * 20)], np.float64)
-        return BoneLengths(lengths, spread, np.array(doc.get("samples", [0] * 20), np.int64),
-                           tuple(doc.get("estimated", ())), float(doc.get("scale", 1.0)),
-                           str(doc.get("method", "")),
-                           float("nan") if doc.get("max_error_px") is None else float(doc["max_error_px"]),
-                           list(doc.get("takes", [])))
-    except (KeyError, TypeError, ValueError) as exc:
-        if isinstance(exc, BoneLengthError):
-            raise
-        raise BoneLengthError(f"{path}: not a subject file ({exc!r})") from None
+    subject = validate(_SubjectFile, doc, str(path), BoneLengthError)
+    return BoneLengths(np.array(subject.bone_lengths), np.array(subject.spread_m, dtype=np.float64),
+                       np.array(subject.samples, dtype=np.int64), subject.estimated, subject.scale, subject.method,
+                       float("nan") if subject.max_error_px is None else subject.max_error_px, list(subject.takes))

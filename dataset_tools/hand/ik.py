@@ -39,9 +39,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from manus_core.skeleton import FINGERTIPS, META_DIRS, N_DOF, REST_FRAMES, HandSkeleton, rodrigues
 from manus_core.errors import IKError
+from manus_core.rotations import matrix_to_rotvec
+from manus_core.skeleton import FINGERTIPS, META_DIRS, N_DOF, REST_FRAMES, HandSkeleton, rodrigues
 
 # Joints that move rigidly with the palm: wrist, thumb CMC, index..pinky MCP.
 PALM_JOINTS = np.array([0, 1, 5, 9, 13, 17])
@@ -76,14 +78,6 @@ def _skew(v: np.ndarray) -> np.ndarray:
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
     return np.stack([z, -w, y, w, z, -x, -y, x, z], -1).reshape(v.shape[:-1] + (3, 3))
-
-
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices (...,3,3) -> rotation vectors with angle in [0, pi]."""
-    from scipy.spatial.transform import Rotation
-
-    shape = R.shape[:-2]
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(shape + (3,))
 
 
 class _HandModel:
@@ -383,7 +377,7 @@ def fit_hand(joints3d: np.ndarray, bone_lengths: np.ndarray | None = None, *, co
 
     fingers = skeleton.clamp(np.concatenate([np.zeros((len(frames), 6)), fingers.reshape(-1, 20)], 1))[:, 6:]
     angles = np.full((n_t, N_DOF), np.nan)
-    angles[frames, :3] = _rotvec(R)
+    angles[frames, :3] = matrix_to_rotvec(R)
     angles[frames, 3:6] = t
     angles[frames, 6:] = fingers
     used = w > 0
@@ -461,8 +455,6 @@ def unwrap_rotations(angles: np.ndarray) -> np.ndarray:
     2 atan2(|v|, w), which then varies continuously (NaN frames are skipped). wrap_rotations
     undoes it after filtering.
     """
-    from scipy.spatial.transform import Rotation
-
     out = np.array(angles, dtype=np.float64)
     good = np.flatnonzero(np.isfinite(out[:, :3]).all(1))
     if len(good) < 2:
@@ -482,5 +474,5 @@ def wrap_rotations(angles: np.ndarray) -> np.ndarray:
     """Angles (T,26) with every rotation vector brought to an angle in [0, pi] (NaN kept)."""
     out = np.array(angles, dtype=np.float64)
     good = np.isfinite(out[:, :3]).all(1)
-    out[good, :3] = _rotvec(rodrigues(out[good, :3]))
+    out[good, :3] = matrix_to_rotvec(rodrigues(out[good, :3]))
     return out

@@ -6,8 +6,9 @@
     keypoints = detector.detect(image_bgr, boxes)           # (N,21,3) [x, y, confidence]
 """
 
+from manus_core.errors import InstallError, ModelError, ModelNotInstalledError
+
 from .detector import Detector, hand_keypoint_detector
-from .install import InstallError, ModelError, ModelNotInstalledError
 from .models import JOINT_NAMES, NUM_JOINTS
 
 __all__ = ["Detector", "hand_keypoint_detector", "InstallError", "ModelError", "ModelNotInstalledError",

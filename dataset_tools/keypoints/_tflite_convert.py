@@ -13,6 +13,7 @@ TFLite takes it, and `output_0..` in the TFLite output order), and prints one JS
 from __future__ import annotations
 
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -27,7 +28,7 @@ def _patch_low_rank_layouts() -> None:
     broadcasting aligns trailing axes, so (1, 1, C) is (1, 1, 1, C) in NHWC, which becomes
     (1, C, 1, 1) in NCHW: left-pad the shape with ones before the transpose.
     """
-    import tflite2onnx.tensor as tensor_module
+    import tflite2onnx.tensor as tensor_module  # only the tool environment has it (see convert)
 
     original = tensor_module.Tensor.transform
 
@@ -46,6 +47,7 @@ def fixed_input(shape: tuple[int, ...]) -> np.ndarray:
 
 
 def convert(tflite_path: Path, out_dir: Path) -> dict:
+    # Only the tool environment has these: imported where used, so the module imports anywhere.
     import tflite2onnx
     from ai_edge_litert.interpreter import Interpreter
 
@@ -66,8 +68,6 @@ def convert(tflite_path: Path, out_dir: Path) -> dict:
 
 
 def main(argv: list[str]) -> int:
-    import logging
-
     # tflite2onnx warns once per float16 weight ("may contain error"); the reference check below
     # is what says whether the converted model is right.
     logging.getLogger("tflite2onnx").setLevel(logging.ERROR)

@@ -26,11 +26,18 @@ import subprocess
 import sys
 import tempfile
 import time
+import venv
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+from onnx import numpy_helper
+
 from manus_core.errors import InstallError, ModelError, ModelNotInstalledError
+from manus_core.progress import Progress, silent
 
 INSTALL_HINT = "manus-capture models install {name}"
 
@@ -145,7 +152,7 @@ def tool_python() -> Path | None:
     return python if (env / ".complete").is_file() and python.exists() else None
 
 
-def _tool_env(log: Callable[[str], None]) -> Path:
+def _tool_env(progress: Progress) -> Path:
     """The private converter environment; created once, reused by later installs."""
     env = cache_dir() / "tools" / TOOL_NAME
     python = env / "bin" / "python"
@@ -154,18 +161,17 @@ def _tool_env(log: Callable[[str], None]) -> Path:
         return python
     if env.exists():
         shutil.rmtree(env)  # an environment whose creation was interrupted
-    log(f"creating the converter environment {env}")
-    import venv
-
+    progress("converter environment", 0, 1)
     venv.EnvBuilder(with_pip=True, clear=True).create(env)
     _run([str(python), "-m", "pip", "install", "--no-input", "--disable-pip-version-check", "-q",
           *TOOL_REQUIREMENTS], f"installing the converter ({', '.join(TOOL_REQUIREMENTS)}) into {env}",
          " (is the network or the package index reachable?)")
     marker.write_text("\n".join(TOOL_REQUIREMENTS) + "\n")
+    progress("converter environment", 1, 1)
     return python
 
 
-def make_batch_dynamic(model) -> None:  # noqa: ANN001 - onnx.ModelProto, imported lazily
+def make_batch_dynamic(model: onnx.ModelProto) -> None:
     """Turn the converter's fixed batch of 1 into a symbolic batch so crops run in one call.
 
     Inputs and outputs get a symbolic first axis; Reshape targets that start with 1 get 0 (copy the
@@ -173,10 +179,6 @@ def make_batch_dynamic(model) -> None:  # noqa: ANN001 - onnx.ModelProto, import
     equivalent `scales` instead; stale intermediate shapes are dropped so that shape inference redoes
     them.
     """
-    import numpy as np
-    import onnx
-    from onnx import numpy_helper
-
     inferred = onnx.shape_inference.infer_shapes(model)
     shapes = {v.name: [d.dim_value for d in v.type.tensor_type.shape.dim]
               for v in list(inferred.graph.value_info) + list(inferred.graph.input)}
@@ -213,9 +215,6 @@ def check_against_reference(onnx_path: Path, reference: Path) -> float:
     Returns the largest absolute difference; raises InstallError naming the file when an output
     differs beyond CHECK_RTOL/CHECK_ATOL or has the wrong shape.
     """
-    import numpy as np
-    import onnxruntime as ort
-
     ref = np.load(reference)
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     x = ref["input"].transpose(0, 3, 1, 2)  # tflite2onnx turns the NHWC input into NCHW
@@ -235,10 +234,11 @@ def check_against_reference(onnx_path: Path, reference: Path) -> float:
     return worst
 
 
-def install(name: str, force: bool = False, log: Callable[[str], None] = print) -> bool:
-    """Install a model bundle into the cache; returns False when it was already installed."""
-    import onnx
+def install(name: str, force: bool = False, progress: Progress = silent) -> bool:
+    """Install a model bundle into the cache; returns False when it was already installed.
 
+    Reports the stages "download", "converter environment" (the first time), "convert" and
+    "check" (one model after the other); the check results go into the manifest."""
     bundle = _bundle(name)
     final = bundle_dir(name)
     if not force and installed_manifest(name) is not None:
@@ -246,8 +246,9 @@ def install(name: str, force: bool = False, log: Callable[[str], None] = print) 
     final.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=final.parent))
     try:
-        log(f"downloading {bundle.requirement} (pip download --no-deps)")
+        progress("download", 0, 1)
         wheel = _download_wheel(bundle, work / "wheel")
+        progress("download", 1, 1)
         tflite_dir = work / "tflite"
         tflite_dir.mkdir()
         with zipfile.ZipFile(wheel) as zf:
@@ -256,14 +257,16 @@ def install(name: str, force: bool = False, log: Callable[[str], None] = print) 
                     (tflite_dir / f"{stem}.tflite").write_bytes(zf.read(member))
                 except KeyError:
                     raise InstallError(f"{wheel.name}: has no {member}") from None
-        python = _tool_env(log)
-        log(f"converting {len(bundle.members)} models with tflite2onnx")
+        python = _tool_env(progress)
+        progress("convert", 0, 1)
         out = work / "out"
         out.mkdir()
         _run([str(python), str(Path(__file__).with_name("_tflite_convert.py")), str(out),
               *(str(tflite_dir / f"{stem}.tflite") for stem in bundle.members)],
              f"converting the models of {wheel.name} with tflite2onnx")
+        progress("convert", 1, 1)
         files, checks = {}, {}
+        progress("check", 0, len(bundle.members))
         for stem in bundle.members:
             onnx_path = out / f"{stem}.onnx"
             model = onnx.load(str(onnx_path))
@@ -271,8 +274,8 @@ def install(name: str, force: bool = False, log: Callable[[str], None] = print) 
             onnx.checker.check_model(model)
             onnx.save(model, str(onnx_path))
             checks[stem] = check_against_reference(onnx_path, out / f"{stem}.reference.npz")
-            log(f"checked {stem}.onnx against TFLite: max |difference| {checks[stem]:.2g}")
             files[onnx_path.name] = _sha256(onnx_path)
+            progress("check", len(files), len(bundle.members))
         staged = work / "staged"
         staged.mkdir()
         for filename in files:
@@ -287,7 +290,6 @@ def install(name: str, force: bool = False, log: Callable[[str], None] = print) 
         if final.exists():
             shutil.rmtree(final)
         os.replace(staged, final)
-        log(f"installed {name} in {final}")
         return True
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -19,16 +19,20 @@ a hand. Without it, MediaPipe's palm detector finds the hand in every frame.
 from __future__ import annotations
 
 import io
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from itertools import islice
 from pathlib import Path
 
+import h5py
 import numpy as np
 
+from manus_core.errors import ModelError, TakeError
 from manus_core.fileio import write_atomic
-from manus_core.take import Take, TakeError
+from manus_core.progress import Progress, silent
+from manus_core.take import Take
+
 from .detector import Detector
-from .install import ModelError
 from .models import JOINT_NAMES, NUM_JOINTS
 
 FORMAT = "manus-capture keypoints2d"
@@ -78,53 +82,53 @@ def load_boxes(path: str | Path, take: Take, cameras: Sequence[str]) -> dict[str
 
 def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | None = None,
                 cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
-                progress: Callable[[int], None] | None = None) -> dict[str, CameraKeypoints]:
+                progress: Progress = silent) -> dict[str, CameraKeypoints]:
     """Keypoints of every frame of the given cameras (default: all), `chunk` frames per network call.
 
     boxes: per camera (F,5) as load_boxes gives; None: the palm detector finds one hand per frame.
-    progress(n) is called after every n frames.
+    Reports progress("detect", frames done, frames of all the cameras).
     """
+    cameras = list(cameras or take.cameras)
+    total = sum(take.frame_count(cam) for cam in cameras)
+    done = 0
+    progress("detect", done, total)
     result = {}
-    for cam in cameras or take.cameras:
+    for cam in cameras:
         F = take.frame_count(cam)
         kp = np.full((F, NUM_JOINTS, 3), np.nan, np.float32)
         kp[..., 2] = 0
         used = np.full((F, 5), np.nan)
-        batch: list[tuple[int, np.ndarray]] = []
-
-        def flush() -> None:
-            index = [k for k, _ in batch]
-            images = [im for _, im in batch]
-            if boxes is None:
-                found_boxes, found_angles = detector.find_boxes(images, 1, min_score)
-                given = np.full((len(batch), 5), np.nan)
-                for i, (fb, fa) in enumerate(zip(found_boxes, found_angles)):
-                    if len(fb):
-                        given[i] = np.r_[fb[0], fa[0]]
-            else:
-                given = boxes[cam][index]
-            out = detector.detect_many(images, [g[None, :4] for g in given], [g[None, 4] for g in given])
-            kp[index] = np.concatenate(out)
-            used[index] = given
-            if progress:
-                progress(len(batch))
-            batch.clear()
-
-        for k, image in take.iter_frames(cam):
-            batch.append((k, image))
-            if len(batch) == chunk:
-                flush()
-        if batch:
-            flush()
+        frames = take.iter_frames(cam)
+        while batch := list(islice(frames, chunk)):
+            _detect_batch(detector, batch, None if boxes is None else boxes[cam], min_score, kp, used)
+            done += len(batch)
+            progress("detect", done, total)
         result[cam] = CameraKeypoints(kp, used[:, :4].astype(np.float32), used[:, 4].astype(np.float32))
     return result
+
+
+def _detect_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], boxes: np.ndarray | None,
+                  min_score: float, kp: np.ndarray, used: np.ndarray) -> None:
+    """Keypoints of a batch of (frame index, image) into kp (F,21,3), and the boxes and angles
+    used into used (F,5): boxes (F,5) of the camera, or None for the palm detector's."""
+    index = [k for k, _ in batch]
+    images = [im for _, im in batch]
+    if boxes is None:
+        found_boxes, found_angles = detector.find_boxes(images, 1, min_score)
+        given = np.full((len(batch), 5), np.nan)
+        for i, (fb, fa) in enumerate(zip(found_boxes, found_angles)):
+            if len(fb):
+                given[i] = np.r_[fb[0], fa[0]]
+    else:
+        given = boxes[index]
+    out = detector.detect_many(images, [g[None, :4] for g in given], [g[None, 4] for g in given])
+    kp[index] = np.concatenate(out)
+    used[index] = given
 
 
 def write_keypoints_h5(path: str | Path, data: TakeKeypoints) -> None:
     """Write keypoints2d.h5 atomically: built in memory (a take's keypoints are megabytes), then
     written beside the target and renamed."""
-    import h5py
-
     buffer = io.BytesIO()
     with h5py.File(buffer, "w") as f:
         f.attrs.update({"format": FORMAT, "version": 1, "model": data.model,
@@ -141,8 +145,6 @@ def write_keypoints_h5(path: str | Path, data: TakeKeypoints) -> None:
 
 def read_keypoints_h5(path: str | Path) -> TakeKeypoints:
     """Read keypoints2d.h5; TakeError naming the file when it is not one."""
-    import h5py
-
     path = Path(path)
     try:
         with h5py.File(path, "r") as f:

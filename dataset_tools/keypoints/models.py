@@ -32,11 +32,16 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import Field
+
+from manus_core.errors import ModelError
+from manus_core.validation import Bool, Float, Int, Str, validate, worded
 
 from . import decoding
-from .install import ModelError, model_path
+from .install import model_path
 from .runtime import Session
 
 NUM_JOINTS = 21
@@ -142,6 +147,43 @@ class ModelSpec:
     sigmoid: bool = False
 
 
+Positive = Annotated[Float, Field(gt=0)]
+
+
+@dataclass(frozen=True)
+class _SimccTable:
+    split_ratio: Positive = 2.0
+    outputs: tuple[Str, ...] = ()
+    softmax: Bool = False
+
+
+@dataclass(frozen=True)
+class _HeatmapTable:
+    output: Str = ""
+    refine: Literal[decoding.REFINES] = "quarter"
+    sigmoid: Bool = False
+
+
+@dataclass(frozen=True)
+class _SpecFile:
+    """A spec file as written (keys other than these are ignored); load_spec makes it a ModelSpec."""
+
+    kind: Literal["simcc", "heatmap"]
+    model: Str
+    input_size: Annotated[tuple[Annotated[Int, Field(gt=0)], Annotated[Int, Field(gt=0)]],
+                          worded("expected [width, height] in pixels, got {value}")]
+    layout: Literal["NCHW", "NHWC"] = "NCHW"
+    color: Literal["RGB", "BGR"] = "RGB"
+    mean: tuple[Float, Float, Float] = (0.0, 0.0, 0.0)
+    std: tuple[Positive, Positive, Positive] = (1.0, 1.0, 1.0)
+    box_scale: Positive = 1.25
+    keypoints: Annotated[tuple[Annotated[Int, Field(ge=-1)], ...], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS),
+                         worded(f"expected {NUM_JOINTS} model joint indices (-1 for none) in the MediaPipe order, "
+                                "got {value}")] = tuple(range(NUM_JOINTS))
+    simcc: _SimccTable = _SimccTable()
+    heatmap: _HeatmapTable = _HeatmapTable()
+
+
 def load_spec(path: str | Path) -> ModelSpec:
     """Read and validate a model spec; errors name the file and the key."""
     path = Path(path)
@@ -151,55 +193,15 @@ def load_spec(path: str | Path) -> ModelSpec:
         raise ModelError(f"{path}: no such model spec") from None
     except tomllib.TOMLDecodeError as exc:
         raise ModelError(f"{path}: not valid TOML ({exc})") from None
-
-    def get(key: str, kind: type | tuple, default=None, table: dict = doc, prefix: str = ""):
-        if key not in table:
-            if default is None:
-                raise ModelError(f"{path}: {prefix}{key}: missing")
-            return default
-        value = table[key]
-        if not isinstance(value, kind) or isinstance(value, bool) and kind is not bool:
-            raise ModelError(f"{path}: {prefix}{key}: expected {getattr(kind, '__name__', kind)}, "
-                             f"got {value!r}")
-        return value
-
-    kind = get("kind", str)
-    if kind not in ("simcc", "heatmap"):
-        raise ModelError(f"{path}: kind: must be simcc or heatmap, got {kind!r}")
-    size = get("input_size", list)
-    if len(size) != 2 or not all(isinstance(v, int) and v > 0 for v in size):
-        raise ModelError(f"{path}: input_size: expected [width, height] in pixels, got {size!r}")
-    layout = get("layout", str, "NCHW")
-    color = get("color", str, "RGB")
-    if layout not in ("NCHW", "NHWC") or color not in ("RGB", "BGR"):
-        raise ModelError(f"{path}: layout must be NCHW or NHWC and color RGB or BGR, got {layout}, {color}")
-    mean = get("mean", list, [0.0, 0.0, 0.0])
-    std = get("std", list, [1.0, 1.0, 1.0])
-    if len(mean) != 3 or len(std) != 3 or any(s == 0 for s in std):
-        raise ModelError(f"{path}: mean and std: expected 3 values each (std non-zero), got {mean}, {std}")
-    keypoints = get("keypoints", list, list(range(NUM_JOINTS)))
-    if len(keypoints) != NUM_JOINTS or not all(isinstance(k, int) and k >= -1 for k in keypoints):
-        raise ModelError(f"{path}: keypoints: expected {NUM_JOINTS} model joint indices (-1 for none) "
-                         f"in the MediaPipe order, got {keypoints!r}")
-    box_scale = float(get("box_scale", (int, float), 1.25))
-    table = doc.get(kind, {})
-    extra: dict = {}
-    if kind == "simcc":
-        extra["split_ratio"] = float(get("split_ratio", (int, float), 2.0, table, "simcc."))
-        extra["outputs"] = tuple(get("outputs", list, [], table, "simcc."))
-        extra["softmax"] = get("softmax", bool, False, table, "simcc.")
+    spec = validate(_SpecFile, doc, str(path), ModelError)
+    if spec.kind == "simcc":
+        extra = dict(split_ratio=spec.simcc.split_ratio, outputs=spec.simcc.outputs, softmax=spec.simcc.softmax)
     else:
-        output = get("output", str, "", table, "heatmap.")
-        extra["outputs"] = (output,) if output else ()
-        extra["refine"] = get("refine", str, "quarter", table, "heatmap.")
-        extra["sigmoid"] = get("sigmoid", bool, False, table, "heatmap.")
-        if extra["refine"] not in decoding.REFINES:
-            raise ModelError(f"{path}: heatmap.refine: must be one of {decoding.REFINES}, "
-                             f"got {extra['refine']!r}")
-    return ModelSpec(source=path, kind=kind, model=(path.parent / get("model", str)).resolve(),
-                     input_size=(size[0], size[1]), layout=layout, color=color,
-                     mean=tuple(float(v) for v in mean), std=tuple(float(v) for v in std),
-                     box_scale=box_scale, keypoints=tuple(keypoints), **extra)
+        extra = dict(outputs=(spec.heatmap.output,) if spec.heatmap.output else (), refine=spec.heatmap.refine,
+                     sigmoid=spec.heatmap.sigmoid)
+    return ModelSpec(source=path, kind=spec.kind, model=(path.parent / spec.model).resolve(),
+                     input_size=spec.input_size, layout=spec.layout, color=spec.color, mean=spec.mean,
+                     std=spec.std, box_scale=spec.box_scale, keypoints=spec.keypoints, **extra)
 
 
 class SpecModel(KeypointModel):

@@ -5,14 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import onnxruntime as ort
 
-from .install import ModelError
+from manus_core.errors import ModelError
 
 
 def providers(prefer: str = "auto") -> list[str]:
     """CUDA first when onnxruntime offers it (and `prefer` allows), the CPU provider always last."""
-    import onnxruntime as ort
-
     available = ort.get_available_providers()
     if prefer not in ("auto", "cpu", "cuda"):
         raise ValueError(f"device must be auto, cpu or cuda, got {prefer!r}")
@@ -27,8 +26,6 @@ class Session:
     """One ONNX model on onnxruntime with a single image input."""
 
     def __init__(self, path: str | Path, device: str = "auto", threads: int | None = None) -> None:
-        import onnxruntime as ort
-
         self.path = Path(path)
         self.device = device
         if not self.path.is_file():

@@ -1,6 +1,8 @@
 """Hand and object masks and the green-paint contact truth (DESIGN.md stage 5; docs/segmentation.md)."""
 
-from .background import BackgroundModel, SegmentationError, fill_holes, remove_small
+from manus_core.errors import SegmentationError
+
+from .background import BackgroundModel, fill_holes, remove_small
 from .colour import ColourModel, PaintKey, chromaticity, dominant_colour_key
 from .edges import refine_edges
 from .multiview import Occupancy, carve, consistent_masks, project_occupancy

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from manus_core.errors import SegmentationError
 
+from manus_core.errors import SegmentationError
 
 # The MAD of a few JPEG frames underestimates the noise of a new frame: a floor in grey levels.
 NOISE_FLOOR = 2.5

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .background import SegmentationError
+from manus_core.errors import SegmentationError
 
 BINS = 48
 

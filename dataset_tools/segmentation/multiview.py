@@ -17,7 +17,9 @@ import cv2
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from .background import SegmentationError, fill_holes
+from manus_core.errors import SegmentationError
+
+from .background import fill_holes
 
 
 @dataclass(frozen=True)
@@ -48,7 +50,7 @@ def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, point
     """(seen, hit) counts per point over the views in `use`: seen when it projects into the image
     in front of the camera, hit when a mask pixel lies within the voxel's projected radius."""
     uv = pixels(rig, points)
-    depth = np.einsum("cij,nj->cni", rig.R, points)[..., 2] + rig.t[:, None, 2]
+    depth = rig.R[:, 2] @ points.T + rig.t[:, 2, None]
     seen = np.zeros(len(points), np.int32)
     hit = np.zeros(len(points), np.int32)
     for c in np.flatnonzero(use):

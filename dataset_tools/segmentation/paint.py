@@ -8,7 +8,9 @@ import cv2
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from .background import SegmentationError, remove_small
+from manus_core.errors import SegmentationError
+
+from .background import remove_small
 from .colour import PaintKey, chromaticity
 from .edges import refine_edges
 from .multiview import pixels

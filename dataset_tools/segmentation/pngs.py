@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .background import SegmentationError
+from manus_core.errors import SegmentationError
 
 
 def load_png_masks(folder: str | Path, cameras, frames, shape: tuple[int, int]) -> np.ndarray:

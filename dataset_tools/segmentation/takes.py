@@ -3,19 +3,50 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import h5py
 import numpy as np
 
 from manus_core.cameras import CameraRig
+from manus_core.dataset import add_arrays
+from manus_core.errors import SegmentationError
+from manus_core.fileio import write_atomic
+from manus_core.progress import Progress, silent
 from manus_core.take import Take
-from .background import BackgroundModel, SegmentationError
+
+from ..sync import frame_groups
+from .background import BackgroundModel
 from .colour import PaintKey
 from .paint import paint_masks
 from .pngs import load_png_masks
 from .views import hand_object_masks, object_colour, paint_key_from_object
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """The masks of one take, cameras in take.json order.
+
+    frame_ns (T,) and frame_index (T,C) (each camera's frame in each group, -1: none): the take's
+    frame groups (every `every`-th); hand and object (T,C,H,W) bool; paint (C,H,W) bool for a
+    canonical take with a paint colour, else None, segmented in group paint_group; report:
+    warnings, the frame grouping used and paint statistics.
+    """
+
+    cameras: tuple[str, ...]
+    frame_ns: np.ndarray
+    frame_index: np.ndarray
+    hand: np.ndarray
+    object: np.ndarray
+    paint: np.ndarray | None
+    paint_group: int | None
+    report: dict
+
+    def in_order(self, ids: list[str] | tuple[str, ...]) -> list[int]:
+        """Column of each camera of `ids` (e.g. a calibration's order) in these masks."""
+        return [self.cameras.index(c) for c in ids]
 
 
 def sample_frames(take: Take, cam: str, count: int = 5) -> np.ndarray:
@@ -55,15 +86,12 @@ def _object_frames(obj: Take, cameras, backgrounds) -> tuple[np.ndarray, list]:
 
 
 def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, object_path: Path | None = None,
-                 swatch=None, every: int = 1, progress: Callable | None = None, masks: Path | None = None) -> dict:
-    """Masks of a take.
-
-    Returns {"frame_ns" (T,), "frame_index" (T,C) (the frame of each camera in each group, -1: none),
-    "hand" and "object" (T,C,H,W) bool, "paint" (C,H,W) bool for a canonical take with a paint
-    colour (from the object take or `swatch` B,G,R) else None, "paint_group" (the group it was
-    segmented in, or None), "report" (warnings, frame grouping, paint statistics), "cameras"}.
-    The groups are the sync stage's (as annotate's), every `every`-th; the paint is segmented in
-    the middle group of a canonical take (the hand holds still there).
+                 swatch=None, every: int = 1, progress: Progress = silent,
+                 masks: Path | None = None) -> Segmentation:
+    """Masks of a take: hand and object in every frame group, and in a canonical take the paint
+    (its colour from the object take or `swatch` B,G,R). The groups are those of the take's sync report (as annotate's), every `every`-th; the paint is
+    segmented in the middle group of a canonical take (the hand holds still there). progress
+    ("segment", groups done, groups).
 
     With `masks`, a folder of masks made by another tool, the hand and object masks are read from
     MASKS/hand/CAM/FRAME.png and MASKS/object/CAM/FRAME.png (FRAME: the camera's frame index, 6
@@ -71,8 +99,6 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
     segmented; the background take is then optional (it sharpens the paint's edges along the
     silhouette). Raises SegmentationError on input it cannot work with; what only lowers the
     quality is a warning in the report (and a Python warning)."""
-    from ..annotate import sync_groups
-
     take = Take(take_path)
     kind = take.meta.get("kind")
     report: dict = {"warnings": []}
@@ -96,8 +122,9 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
         key = paint_key_from_object(images, bgs) if swatch is None else None
     if swatch is not None:
         key = PaintKey.from_swatch(swatch)
-    (frame_ns, frame_index), report["frame_groups"] = sync_groups(take)
-    frame_ns, frame_index = frame_ns[::every], frame_index[::every]
+    groups = frame_groups(take)
+    report["frame_groups"] = groups.description
+    frame_ns, frame_index = groups.frame_ns[::every], groups.frame_index[::every]
     w, h = (int(v) for v in rig.size[0])
     if masks is None:
         hand, obj = _segment_groups(take, rig, backgrounds, model, frame_index, (h, w), progress)
@@ -105,8 +132,7 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
         hand = load_png_masks(Path(masks) / "hand", take.cameras, frame_index, (h, w))
         objects = Path(masks) / "object"
         obj = load_png_masks(objects, take.cameras, frame_index, (h, w)) if objects.is_dir() else np.zeros_like(hand)
-        if progress:
-            progress(len(frame_index))
+        progress("segment", len(frame_index), len(frame_index))
     paint = middle = None
     if kind == "canonical":
         if key is None:
@@ -121,12 +147,11 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
             report["warnings"].extend(paint_report["warnings"])
     for message in report["warnings"]:
         warnings.warn(message, stacklevel=2)
-    return {"frame_ns": frame_ns, "frame_index": frame_index, "hand": hand, "object": obj, "paint": paint,
-            "paint_group": middle, "report": report, "cameras": list(take.cameras)}
+    return Segmentation(tuple(take.cameras), frame_ns, frame_index, hand, obj, paint, middle, report)
 
 
 def _segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_index: np.ndarray,
-                    shape: tuple[int, int], progress: Callable | None) -> tuple[np.ndarray, np.ndarray]:
+                    shape: tuple[int, int], progress: Progress) -> tuple[np.ndarray, np.ndarray]:
     """Hand and object masks (T,C,H,W) of the frame groups frame_index (T,C)."""
     h, w = shape
     object_take = take.meta.get("kind") == "object"
@@ -141,15 +166,12 @@ def _segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_
         bgs = [b if p else None for b, p in zip(backgrounds, present)]
         found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
         hand[t], obj[t] = (found_object, found_hand) if object_take else (found_hand, found_object)
-        if progress:
-            progress(1)
+        progress("segment", t + 1, len(frame_index))
     return hand, obj
 
 
 def check_output(path: Path, key: str, force: bool) -> None:
     """Refuse to replace take `key`'s masks in DATASET.h5 unless `force` (checked before the work)."""
-    import h5py
-
     path = Path(path)
     if force or not path.exists():
         return
@@ -162,41 +184,38 @@ def check_output(path: Path, key: str, force: bool) -> None:
         raise SegmentationError(f"{path}: take {key} already has masks; --force replaces them")
 
 
-def write_masks(path: Path, key: str, result: dict, attrs: dict) -> None:
+def write_masks(path: Path, key: str, result: Segmentation, attrs: dict) -> None:
     """Add masks/hand, masks/object, masks/frame_ns (and paint/masks) to take `key` of
     DATASET.h5, atomically (dataset.add_arrays). The masks' own frame groups are stored: with
     --every they are a subset of the annotation's."""
-    from manus_core.dataset import add_arrays
-
-    arrays = {"masks/hand": result["hand"], "masks/object": result["object"], "masks/frame_ns": result["frame_ns"]}
-    if result["paint"] is not None:
-        arrays["paint/masks"] = result["paint"]
-    add_arrays(path, key, arrays, {"mask_cameras": result["cameras"], **attrs})
+    arrays = {"masks/hand": result.hand, "masks/object": result.object, "masks/frame_ns": result.frame_ns}
+    if result.paint is not None:
+        arrays["paint/masks"] = result.paint
+    add_arrays(path, key, arrays, {"mask_cameras": list(result.cameras), **attrs})
 
 
-def write_overlays(folder: Path, take: Take, result: dict, t: int | None = None) -> list[Path]:
+def write_overlays(folder: Path, take: Take, result: Segmentation, t: int | None = None) -> list[Path]:
     """PNG overlays FOLDER/CAM.png of group t (hand red, object blue, paint green) for a quick look;
     by default the group the paint was segmented in, else the first."""
     if t is None:
-        t = result["paint_group"] or 0
+        t = result.paint_group or 0
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = []
-    for c, cam in enumerate(result["cameras"]):
-        k = int(result["frame_index"][t, c])
+    for c, cam in enumerate(result.cameras):
+        k = int(result.frame_index[t, c])
         if k < 0:
             continue
         image = take.read_frame(cam, k).astype(np.float32)
         tint = np.zeros_like(image)
-        tint[result["hand"][t, c]] = (0, 0, 255)
-        tint[result["object"][t, c]] = (255, 0, 0)
-        if result["paint"] is not None:
-            tint[result["paint"][c]] = (0, 255, 0)
+        tint[result.hand[t, c]] = (0, 0, 255)
+        tint[result.object[t, c]] = (255, 0, 0)
+        if result.paint is not None:
+            tint[result.paint[c]] = (0, 255, 0)
         shown = np.where(tint.any(axis=-1, keepdims=True), 0.5 * image + 0.5 * tint, image)
         target = folder / f"{cam}.png"
         ok, buf = cv2.imencode(".png", shown.astype(np.uint8))
         if ok:
-            from manus_core.fileio import write_atomic
             write_atomic(target, buf.tobytes())
             out.append(target)
     return out

@@ -8,7 +8,9 @@ import cv2
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from .background import BackgroundModel, SegmentationError, remove_small
+from manus_core.errors import SegmentationError
+
+from .background import BackgroundModel, remove_small
 from .colour import ColourModel, PaintKey
 from .edges import refine_edges
 from .multiview import consistent_masks

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import click
+
+from dataset_tools.annotate import AnnotateOptions, annotate
+from manus_capture.bars import Bars
+from manus_core.errors import AnnotateError
 
 
 @click.command("annotate", context_settings={"help_option_names": ["-h", "--help"]})
@@ -50,17 +53,13 @@ def command(takes: tuple[Path, ...], calib: Path, output: Path, keypoints: str, 
     (unless --force). Hand takes of a session give the subject's bone lengths, saved as
     SESSION/subjects/SUBJECT.json; give them in the same run or annotate them first.
     """
-    from tqdm import tqdm
-
-    from dataset_tools.annotate import AnnotateError, AnnotateOptions, annotate
-
     options = AnnotateOptions(keypoints=keypoints, model=model, device=device, sim_noise_px=sim_noise_px,
                               sim_outlier_rate=sim_outliers, sim_seed=sim_seed, threshold_px=threshold_px,
                               min_cutoff=min_cutoff, beta=beta)
     start = time.perf_counter()
-    with tqdm(total=len(takes), unit="take", desc="annotate", file=sys.stderr) as bar:
+    with Bars(unit="take") as bars:
         summary = annotate(takes, calib, output, options, workers=workers, scheduler=scheduler, force=force,
-                           bones=bones, progress=lambda key: bar.update(1))
+                           bones=bones, progress=bars)
     elapsed = time.perf_counter() - start
     for key, why in summary.failed.items():
         click.echo(f"failed: {key}: {why}", err=True)

@@ -2,10 +2,21 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
+import numpy as np
+
+from dataset_tools.calibration.boards import load_board
+from dataset_tools.calibration.detect import detect_source
+from dataset_tools.calibration.diagnose import diagnose_board
+from dataset_tools.calibration.formats import save_cameras
+from dataset_tools.calibration.frames import VIDEO_SUFFIXES, expand_inputs, read_frames, subsample
+from dataset_tools.calibration.intrinsics import calibrate_intrinsics
+from dataset_tools.calibration.rig import calibrate_rig
+from manus_capture.bars import Bars
+from manus_core.cameras import CameraRig
+from manus_core.errors import BoardError
 
 
 @click.group()
@@ -29,23 +40,14 @@ def command() -> None:
 def intrinsics(inputs, board_file: Path, output: Path, camera_id, frames: int, max_views: int, fix_k3: bool,
                force: bool) -> None:
     """One camera's intrinsics from board IMAGES (files or folders) or one VIDEO."""
-    import numpy as np
-    from tqdm import tqdm
-
-    from dataset_tools.calibration.boards import BoardError, load_board
-    from dataset_tools.calibration.detect import detect_source, diagnose_board, expand_inputs, read_frames, subsample
-    from dataset_tools.calibration.formats import save_cameras
-    from dataset_tools.calibration.intrinsics import calibrate_intrinsics
-    from manus_core.cameras import CameraRig
-
     if output.exists() and not force:
         raise click.UsageError(f"{output} exists; use --force to overwrite it")
     board = load_board(board_file)
     source = subsample(expand_inputs(inputs), frames)
     name = camera_id or Path(source.paths[0]).stem if source.is_video else camera_id or Path(source.paths[0]).parent.name
     total = len(source.frames) if source.frames else len(source.paths)
-    with tqdm(total=total, desc="board detection", unit="frame", file=sys.stderr) as bar:
-        found, size = detect_source(source, board, on_frame=bar.update)
+    with Bars(unit="frame") as bars:
+        found, size = detect_source(source, board, progress=bars)
     if not found:
         sample = [g for _, g in read_frames(subsample(source, 5))]
         raise BoardError(f"camera {name}: no board in {total} frames: {diagnose_board(sample, board)}")
@@ -83,10 +85,8 @@ def intrinsics(inputs, board_file: Path, output: Path, camera_id, frames: int, m
 def rig(take: Path, tags_file, board_file, method, intrinsics_file, allow_partial, refine_tags, tag_frames,
         board_frames, workers, output: Path, force: bool) -> None:
     """Calibrate every camera of TAKE (a take folder, or a folder of per-camera videos)."""
-    from dataset_tools.calibration.rig import calibrate_rig
-
     images, take_dir = _take_or_videos(take)
-    with _StageBars() as bars:
+    with Bars(unit="cam") as bars:
         result = calibrate_rig(images, take=take_dir, tags=tags_file, board=board_file, method=method,
                                intrinsics=intrinsics_file, allow_partial=allow_partial, tag_frames=tag_frames,
                                board_frames=board_frames, refine_tags=refine_tags, workers=workers, output=output,
@@ -101,8 +101,6 @@ def rig(take: Path, tags_file, board_file, method, intrinsics_file, allow_partia
 
 def _take_or_videos(folder: Path):
     """A take folder (take.json) -> (None, folder); a folder of CAM.mp4/.mkv/... -> ({CAM: video}, None)."""
-    from dataset_tools.calibration.detect import VIDEO_SUFFIXES
-
     if (folder / "take.json").is_file():
         return None, folder
     videos = {p.stem: p for p in sorted(folder.iterdir()) if p.suffix.lower() in VIDEO_SUFFIXES}
@@ -110,36 +108,3 @@ def _take_or_videos(folder: Path):
         raise click.UsageError(f"{folder}: neither a take folder (take.json) nor a folder of per-camera videos")
     return videos, None
 
-
-class _StageBars:
-    """One tqdm bar (stderr) per stage of calibrate_rig's progress(stage, done, total)."""
-
-    def __init__(self) -> None:
-        self.bar = None
-        self.stage = None
-
-    def __call__(self, stage: str, done: int, total: int) -> None:
-        from tqdm import tqdm
-
-        if stage != self.stage:
-            self.close()
-            self.stage = stage
-            self.bar = tqdm(total=total, desc=stage, unit="cam" if total > 1 else "step",
-                            file=sys.stderr)
-        self.bar.n = done
-        self.bar.refresh()
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.n = self.bar.total  # a stage ends when the next one starts
-            self.bar.close()
-            self.bar = None
-
-    def __enter__(self) -> "_StageBars":
-        return self
-
-    def __exit__(self, kind, *exc) -> None:
-        if kind is None:
-            self.close()
-        elif self.bar is not None:
-            self.bar.close()

@@ -2,11 +2,23 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import click
+import cv2
+import numpy as np
+import torch
+
+from dataset_tools.calibration.formats import load_cameras
+from manus_capture.bars import Bars
+from manus_capture.contacts import contact_image, model_contacts, write_contacts
+from manus_capture.evaluate import render_contacts
+from manus_capture.splat.checkpoint import load_checkpoint
+from manus_capture.splat.hand import HandGaussians
+from manus_core.dataset import read_dataset
+from manus_core.errors import EvaluateError
+from manus_core.fileio import write_atomic
 
 
 @click.command("contacts", context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,16 +42,6 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     """Contacts of the hand of take KEY with the object: for every frame, each hand Gaussian's
     nearest object Gaussian (and the reverse), contact below --tau; instantaneous maps (T,G) and
     the accumulated map (G,) into DATASET under KEY/contacts (docs/contacts.md)."""
-    import numpy as np
-    import torch
-
-    from manus_core.dataset import read_dataset
-    from manus_core.fileio import write_atomic
-    from manus_capture.contacts import contact_image, model_contacts, write_contacts
-    from manus_capture.evaluate import EvaluateError, render_contacts
-    from manus_capture.splat.checkpoint import load_checkpoint
-    from manus_capture.splat.hand import HandGaussians
-
     if (calib is None) != (renders is None):
         raise click.UsageError("--renders and --calib go together")
     start = time.perf_counter()
@@ -59,16 +61,15 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     maps = model_contacts(hand, angles, obj, tau, soft, device)
     write_contacts(dataset, key, maps, {"contact_hand_model": str(hand_path), "contact_object_model": str(object_path)})
     if renders is not None:
-        from tqdm import tqdm
-
-        from dataset_tools.calibration.formats import load_cameras
-        import cv2
-
         rig = load_cameras(calib)
         hold = int(np.argmax(maps.instant.sum(axis=1)))
-        for i in tqdm(range(len(rig)), desc="render", unit="view", file=sys.stderr):
-            value, alpha = render_contacts(hand, angles[hold], maps.accumulated, rig.subset([rig.ids[i]]))
-            write_atomic(renders / f"{rig.ids[i]}.png", cv2.imencode(".png", contact_image(value[0], alpha[0]))[1].tobytes())
+        with Bars(unit="view") as bars:
+            bars("render", 0, len(rig))
+            for i in range(len(rig)):
+                value, alpha = render_contacts(hand, angles[hold], maps.accumulated, rig.subset([rig.ids[i]]))
+                image = contact_image(value[0], alpha[0])
+                write_atomic(renders / f"{rig.ids[i]}.png", cv2.imencode(".png", image)[1].tobytes())
+                bars("render", i + 1, len(rig))
     touched = int((maps.accumulated > 0.5).sum())
     click.echo(f"contacts: {key}: {len(angles)} frames, {touched}/{len(hand)} hand Gaussians and "
                f"{int((maps.object_accumulated > 0.5).sum())}/{len(obj)} object Gaussians in contact "

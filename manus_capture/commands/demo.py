@@ -6,6 +6,9 @@ from pathlib import Path
 
 import click
 
+from manus_capture.demo import DemoConfig, run_demo
+from manus_capture.report import text_table
+
 
 def _views(text: str) -> tuple[int, ...]:
     try:
@@ -40,8 +43,6 @@ def command(output: Path, cameras: int, resolution: str, fps: float, obj: str, s
     evaluate, and print every stage's error against ground truth. Writes OUTPUT/report.html and
     OUTPUT/summary.json (contact IoU and F1 of the Gaussian hand and of the capsule baseline, and
     the camera ablation). Exit code 0 when every stage ran, 1 when one failed."""
-    from manus_capture.demo import DemoConfig, run_demo
-    from manus_capture.report import text_table
 
     try:
         w, h = (int(v) for v in resolution.lower().split("x"))

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import click
+
+from dataset_tools.keypoints import hand_keypoint_detector
+from dataset_tools.keypoints.keypoints2d import TakeKeypoints, detect_take, load_boxes, write_keypoints_h5
+from manus_capture import __version__
+from manus_capture.bars import Bars
 from manus_core.errors import OutputExists
+from manus_core.take import Take
 
 
 @click.command("detect", context_settings={"help_option_names": ["-h", "--help"]})
@@ -34,15 +39,6 @@ def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str |
     Writes TAKE/keypoints2d.h5: per camera, keypoints (F,21,3) [x, y, confidence] indexed by the
     camera's frame index (its rows of frames.csv), and the boxes used. See docs/keypoints.md.
     """
-    from tqdm import tqdm
-
-    from dataset_tools.keypoints import hand_keypoint_detector
-    from dataset_tools.keypoints.keypoints2d import (TakeKeypoints, detect_take, load_boxes,
-                                                     write_keypoints_h5)
-    from manus_core.take import Take
-
-    from .. import __version__
-
     tk = Take(take)
     output = output or tk.path / "keypoints2d.h5"
     if output.exists() and not force:
@@ -54,8 +50,8 @@ def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str |
     detector = hand_keypoint_detector(model_name, device=device)
     total = sum(tk.frame_count(c) for c in cams)
     start = time.perf_counter()
-    with tqdm(total=total, unit="frame", desc="detect", file=sys.stderr) as bar:
-        result = detect_take(tk, detector, boxes, cams, chunk=chunk, min_score=min_score, progress=bar.update)
+    with Bars(unit="frame") as bars:
+        result = detect_take(tk, detector, boxes, cams, chunk=chunk, min_score=min_score, progress=bars)
     elapsed = time.perf_counter() - start
     write_keypoints_h5(output, TakeKeypoints(
         result, detector.name, str(detector.model.session.path),

@@ -8,6 +8,17 @@ from pathlib import Path
 
 import click
 
+from dataset_tools.calibration.formats import load_cameras
+from manus_capture.builder import ModelInputs
+from manus_capture.contacts import model_contacts
+from manus_capture.evaluate import canonical_pose, pick_views, score_contacts, spread_cameras
+from manus_capture.splat.checkpoint import load_checkpoint
+from manus_capture.splat.hand import HandGaussians
+from manus_capture.template import capsule_template
+from manus_core.dataset import read_dataset
+from manus_core.errors import EvaluateError
+from manus_core.fileio import write_atomic
+
 
 def _counts(ctx, param, values: tuple[str, ...]) -> tuple[int, ...]:
     out = []
@@ -57,14 +68,6 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
     capsule-template baseline is scored the same way. Exit code 2 on unusable input."""
     import h5py
 
-    from dataset_tools.calibration.formats import load_cameras
-    from manus_core.dataset import read_dataset
-    from manus_core.fileio import write_atomic
-    from manus_capture.contacts import model_contacts
-    from manus_capture.evaluate import EvaluateError, canonical_pose, pick_views, score_contacts, spread_cameras
-    from manus_capture.splat.checkpoint import load_checkpoint
-    from manus_capture.splat.hand import HandGaussians
-    from manus_capture.template import capsule_template
 
     start = time.perf_counter()
     data = read_dataset(dataset)
@@ -96,7 +99,6 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
     if views:
         if hand_take is None or object_take is None or background is None:
             raise click.UsageError("--views needs --hand-take, --object-take and --background")
-        from manus_capture.builder import ModelInputs
 
         inputs = ModelInputs.prepare(rig, dataset, hand_take, object_take, background,
                                      object_iterations=iterations, hand_iterations=iterations)
@@ -104,8 +106,8 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
         for n in views:
             count = len(rig) if n == 0 else min(n, len(rig))
             click.echo(f"ablation: models from {count} cameras ...", err=True)
-            model, gaussians_obj, _ = inputs.train(spread_cameras(rig, count))
-            result["views"][str(count)] = score(model, gaussians_obj).mean_iou
+            models = inputs.train(spread_cameras(rig, count))
+            result["views"][str(count)] = score(models.hand, models.object).mean_iou
     if output is not None:
         write_atomic(output, json.dumps(result, indent=2).encode())
     ablation = "".join(f"; {k} cameras IoU {v:.3f}" for k, v in result.get("views", {}).items())

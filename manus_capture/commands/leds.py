@@ -2,27 +2,28 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import click
+
 from manus_core.errors import NoLedsError
+from manus_core.rig_config import LedConfig, load_rig
+from rig.leds import LedController, open_led_controller
 
 rig_option = click.option("--rig", "rig_file", required=True,
                           type=click.Path(dir_okay=False, path_type=Path),
                           help="rig.toml whose [leds] table names the controller.")
 
 
-def _open(rig_file: Path):
-    from manus_core.rig_config import load_rig
-    from rig.leds import open_led_controller
-
+def _open(rig_file: Path) -> tuple[LedConfig, LedController]:
     rig = load_rig(rig_file)
     if rig.leds is None:
         raise NoLedsError(f"{rig_file}: leds: missing (add a [leds] table with port and protocol)")
     return rig.leds, open_led_controller(rig.leds)
 
 
-def _where(cfg, record: dict) -> str:
+def _where(cfg: LedConfig, record: dict) -> str:
     ack = record.get("t_ack_ns") or record.get("t_done_ns")
     latency = f" after {(ack - record['t_send_ns']) / 1e6:.1f} ms" if ack else ""
     return f"({cfg.protocol} on {cfg.port}{latency})"
@@ -78,8 +79,6 @@ def set_level(level: float, rig_file: Path, panel: int | None) -> None:
 @click.option("--level", type=click.FloatRange(0, 1), default=1.0, show_default=True)
 def flash(ms: int, rig_file: Path, level: float) -> None:
     """Flash every panel for MS milliseconds, then return to the previous levels."""
-    import time
-
     cfg, leds = _open(rig_file)
     with leds:
         record = leds.flash(ms, level)

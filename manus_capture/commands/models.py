@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import click
 
+from dataset_tools.keypoints.install import bundle_dir, install, list_models
+from manus_capture.bars import Bars
+
 
 @click.group("models", context_settings={"help_option_names": ["-h", "--help"]})
 def command() -> None:
@@ -21,12 +24,8 @@ def install_cmd(name: str, force: bool) -> None:
     checks each against the TFLite interpreter on a fixed input, and caches the result. A second
     run does nothing.
     """
-    from dataset_tools.keypoints.install import bundle_dir, install
-
-    def log(message: str) -> None:
-        click.echo(message, err=True)
-
-    changed = install(name, force=force, log=log)
+    with Bars() as bars:
+        changed = install(name, force=force, progress=bars)
     click.echo(f"{name}: installed in {bundle_dir(name)}" if changed
                else f"{name}: already installed in {bundle_dir(name)}; nothing to do")
 
@@ -34,7 +33,6 @@ def install_cmd(name: str, force: bool) -> None:
 @command.command("list")
 def list_cmd() -> None:
     """List the installable models and whether they are installed."""
-    from dataset_tools.keypoints.install import list_models
 
     rows = list_models()
     for row in rows:

@@ -14,6 +14,15 @@ from pathlib import Path
 
 import click
 
+from manus_core.rig_config import load_rig
+from manus_core.session import open_session
+from rig.leds import LedController, open_led_controller
+from rig.record import RecordOptions, StopFlag, record_take
+from rig.sim.subject import with_sim_subject
+
+from ..bars import Bars
+from .record import stop_on_signals, summarize
+
 INSTRUCTIONS = {
     "calibration": "Empty cube: nothing inside, LEDs on. The cameras see only the tags on the walls.",
     "hand": "Hand articulation: in the middle of the cube, open and close the hand, spread and join the "
@@ -46,7 +55,7 @@ def protocol_steps(paint: bool, repeats: int, duration_s: float | None = None) -
             for n, (kind, suffix) in enumerate(kinds)]
 
 
-def _cue(leds, level: float) -> None:
+def _cue(leds: LedController, level: float) -> None:
     """Tell the person in the cube that a take starts now: CUE_FLASHES short flashes."""
     for _ in range(CUE_FLASHES):
         leds.flash(CUE_MS, 0.0 if level >= 0.5 else 1.0)
@@ -79,13 +88,6 @@ def command(rig_file: Path, session_dir: Path, obj: str, paint: bool, repeats: i
     the simulated object and paint. Exit code 0: every take complete; 1: a take failed or lost a
     camera; 130: stopped by a signal.
     """
-    from manus_core.rig_config import load_rig
-    from rig.recorder import StopFlag, record_take
-    from manus_core.session import open_session
-    from rig.sim.subject import with_sim_subject
-
-    from .record import stop_on_signals, summarize
-
     rig = load_rig(rig_file)
     simulated = all(c.backend == "sim" for c in rig.cameras)
     if simulated:
@@ -94,8 +96,9 @@ def command(rig_file: Path, session_dir: Path, obj: str, paint: bool, repeats: i
     steps = protocol_steps(paint, repeats, duration)
     leds = None
     if rig.leds is not None and not no_leds:
-        from rig.leds import open_led_controller
         leds = open_led_controller(rig.leds)
+    options = RecordOptions(force=True, subject=subject, operator=operator, obj=obj, use_leds=leds is not None,
+                            flash_ms=flash_ms)
     worst = 0
     try:
         for i, step in enumerate(steps, 1):
@@ -113,10 +116,9 @@ def command(rig_file: Path, session_dir: Path, obj: str, paint: bool, repeats: i
                 if leds is not None:
                     _cue(leds, rig.leds.level)
             stop = StopFlag()
-            with stop_on_signals(stop):
-                result = record_take(rig, session_dir, step.name, step.kind, step.duration_s, force=True,
-                                     subject=subject, operator=operator, obj=obj, leds=leds,
-                                     use_leds=leds is not None, flash_ms=flash_ms, stop=stop)
+            with stop_on_signals(stop), Bars(unit="frame") as bars:
+                result = record_take(rig, session_dir, step.name, step.kind, step.duration_s, options, leds=leds,
+                                     stop=stop, progress=bars)
             session = open_session(session_dir, rig)
             click.echo("  " + summarize(result))
             worst = max(worst, result.exit_code)

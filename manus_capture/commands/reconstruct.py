@@ -13,13 +13,36 @@ see docs/splat.md.
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import click
+import cv2
 import numpy as np
+import torch
+
+from dataset_tools.calibration.formats import load_cameras
+from manus_capture.bars import Bars
+from manus_capture.builder import surface_hand, surface_hand_config
+from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
+from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
+from manus_capture.splat.losses import load_lpips
+from manus_capture.splat.rasterize import EPS2D
+from manus_capture.splat.takes import (
+    crop_views,
+    hand_frames_from_dataset,
+    hand_frames_from_truth,
+    hand_masks_from_dataset,
+    hand_views_from_take,
+    object_views_from_take,
+    spread_frames,
+    still_frames,
+    undistort,
+)
+from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, render, train_object, world_to_camera
+from manus_core.cameras import scale_intrinsics
 from manus_core.errors import ReconstructInputError
+from manus_core.fileio import write_atomic
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -35,8 +58,6 @@ def _colour(text: str) -> tuple[float, float, float]:
 
 
 def _read_image(folder: Path, cam: str, flags: int) -> np.ndarray:
-    import cv2
-
     for suffix in IMAGE_SUFFIXES:
         path = folder / f"{cam}{suffix}"
         if path.exists():
@@ -60,8 +81,6 @@ def _int_list(text: str, option: str) -> list[int]:
 
 def _load_rig(cameras_path: Path, only: str):
     """The calibration, restricted to --only-cameras when given (KeyError names an unknown id)."""
-    from dataset_tools.calibration.formats import load_cameras
-
     rig = load_cameras(cameras_path)
     ids = _id_list(only)
     return rig.subset(ids) if ids else rig
@@ -73,8 +92,6 @@ def _check_output(output: Path, force: bool) -> None:
 
 
 def _lpips(weights: Path | None, net: str):
-    from manus_capture.splat.losses import load_lpips
-
     return None if weights is None else load_lpips(weights, net)
 
 
@@ -140,12 +157,6 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
                    only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
                    lpips_weights: Path | None, lpips_net: str, seed: int, output: Path, force: bool) -> None:
     """Fit static Gaussians to the calibrated views of an object; print held-out PSNR/SSIM."""
-    import cv2
-
-    from manus_capture.splat.checkpoint import save_checkpoint
-    from manus_capture.splat.takes import crop_views, object_views_from_take, undistort
-    from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, train_object
-
     if (take is None) == (images_dir is None):
         raise click.UsageError("give exactly one of --take and --images")
     if masks_arg == "truth" and take is None:
@@ -176,7 +187,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
                       lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net,
                       seed=seed)
     start = time.perf_counter()
-    result = train_object(crop_views(views.subset(train_idx), crop_margin), cfg)
+    with Bars() as bars:
+        result = train_object(crop_views(views.subset(train_idx), crop_margin), cfg, progress=bars)
     elapsed = time.perf_counter() - start
     save_checkpoint(output, result.gaussians, kind="object",
                     metadata={"calibration": str(cameras_path), "source": str(take or images_dir),
@@ -220,13 +232,6 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
                  background: str, lpips_weights: Path | None, lpips_net: str, seed: int, output: Path,
                  force: bool) -> None:
     """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
-    from manus_capture.builder import surface_hand, surface_hand_config
-    from manus_capture.splat.checkpoint import save_checkpoint
-    from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
-    from manus_capture.splat.takes import (crop_views, hand_frames_from_dataset, hand_frames_from_truth,
-                                           hand_masks_from_dataset, hand_views_from_take, spread_frames,
-                                           still_frames)
-
     if truth == (dataset_path is not None):
         raise click.UsageError("give exactly one of --dataset and --truth")
     _check_output(output, force)
@@ -261,7 +266,9 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
         model = HandGaussians.initialize(hand.bone_lengths, per_bone=per_bone, sh_degree=sh_degree, seed=seed)
         cfg = HandConfig.fast(iterations, **settings)
     start = time.perf_counter()
-    train_hand(model, angles[train_rows], [crop_views(views[i], crop_margin) for i in train_rows], cfg)
+    with Bars() as bars:
+        train_hand(model, angles[train_rows], [crop_views(views[i], crop_margin) for i in train_rows], cfg,
+                   progress=bars)
     elapsed = time.perf_counter() - start
     save_checkpoint(output, model.gaussians, kind="hand", extra=model.extra_tensors(),
                     metadata={"calibration": str(cameras_path), "source": str(take), "angles": hand.source,
@@ -290,18 +297,6 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
 def render_command(checkpoint: Path, cameras_path: Path, scale: float, background: str, angles: str | None,
                    output: Path, force: bool) -> None:
     """Render a checkpoint into every camera of a calibration (undistorted pinhole images)."""
-    import cv2
-    import torch
-    from tqdm import tqdm
-
-    from dataset_tools.calibration.formats import load_cameras
-    from manus_core.cameras import scale_intrinsics
-    from manus_core.fileio import write_atomic
-    from manus_capture.splat.checkpoint import load_checkpoint
-    from manus_capture.splat.hand import HandGaussians
-    from manus_capture.splat.rasterize import EPS2D
-    from manus_capture.splat.trainer import render, world_to_camera
-
     rig = load_cameras(cameras_path)
     gaussians, extra, meta = load_checkpoint(checkpoint)
     eps2d = float(meta.get("eps2d", EPS2D))  # the splat blur the model was trained with
@@ -316,19 +311,22 @@ def render_command(checkpoint: Path, cameras_path: Path, scale: float, backgroun
             raise click.BadParameter("expected 26 comma-separated numbers", param_hint="--angles")
     bg = torch.tensor(_colour(background))
     start = time.perf_counter()
-    for i in tqdm(range(len(rig)), desc="render", unit="view", file=sys.stderr):
-        path = output / f"{rig.ids[i]}.png"
-        if path.exists() and not force:
-            raise ReconstructInputError(f"{path}: exists (use --force to overwrite)")
-        w, h = int(round(rig.size[i, 0] * scale)), int(round(rig.size[i, 1] * scale))
-        K = torch.tensor(scale_intrinsics(rig.K[i], scale), dtype=torch.float32)
-        V = world_to_camera(rig.R[i:i + 1], rig.t[i:i + 1])[0]
-        with torch.no_grad():
-            if hand is None:
-                rgb, _ = render(gaussians, V[None], K[None], w, h, bg, eps2d=eps2d)
-            else:
-                rgb, _ = hand.render(pose, V[None], K[None], w, h, bg, eps2d=eps2d)
-        image = (rgb[0].clamp(0, 1).numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
-        write_atomic(path, cv2.imencode(".png", image)[1].tobytes())
+    with Bars(unit="view") as bars:
+        bars("render", 0, len(rig))
+        for i in range(len(rig)):
+            path = output / f"{rig.ids[i]}.png"
+            if path.exists() and not force:
+                raise ReconstructInputError(f"{path}: exists (use --force to overwrite)")
+            w, h = int(round(rig.size[i, 0] * scale)), int(round(rig.size[i, 1] * scale))
+            K = torch.tensor(scale_intrinsics(rig.K[i], scale), dtype=torch.float32)
+            V = world_to_camera(rig.R[i:i + 1], rig.t[i:i + 1])[0]
+            with torch.no_grad():
+                if hand is None:
+                    rgb, _ = render(gaussians, V[None], K[None], w, h, bg, eps2d=eps2d)
+                else:
+                    rgb, _ = hand.render(pose, V[None], K[None], w, h, bg, eps2d=eps2d)
+            image = (rgb[0].clamp(0, 1).numpy()[..., ::-1] * 255 + 0.5).astype(np.uint8)
+            write_atomic(path, cv2.imencode(".png", image)[1].tobytes())
+            bars("render", i + 1, len(rig))
     click.echo(f"{output}: {len(rig)} views of {checkpoint.name} ({meta.get('kind')}, {len(gaussians)} Gaussians), "
                f"{time.perf_counter() - start:.1f} s")

@@ -10,11 +10,16 @@ from pathlib import Path
 
 import click
 
+from manus_core.rig_config import load_rig
 from manus_core.session import TAKE_KINDS as KINDS
+from rig.record import RecordOptions, StopFlag, TakeResult, record_take
+from rig.sim.subject import with_sim_subject
+
+from ..bars import Bars
 
 
 @contextlib.contextmanager
-def stop_on_signals(stop) -> Iterator[None]:
+def stop_on_signals(stop: StopFlag) -> Iterator[None]:
     """Ctrl-C and SIGTERM end the take in order (every file finished) instead of killing it."""
     names = {signal.SIGINT: "SIGINT (Ctrl-C)", signal.SIGTERM: "SIGTERM"}
 
@@ -32,7 +37,7 @@ def stop_on_signals(stop) -> Iterator[None]:
             signal.signal(s, h)
 
 
-def summarize(result) -> str:
+def summarize(result: TakeResult) -> str:
     """One line: status, cameras, frames, drops, size."""
     cams = result.cameras
     frames = result.frames
@@ -76,24 +81,20 @@ def command(rig_file: Path, session_dir: Path, take: str, kind: str, duration: f
             no_leds: bool, subject: str | None, operator: str | None, obj: str | None) -> None:
     """Record one take: every camera into SESSION/TAKE/cams/CAM.mkv, frames.csv and take.json.
 
-    A live line shows each camera's frame rate and drops. A camera that is lost mid-take is
+    A live bar shows the frames stored and their rate. A camera that is lost mid-take is
     reported and the others go on. Ctrl-C, SIGTERM, a full disk or a failing writer end the take
     with every frame received so far readable, marked interrupted with the reason.
     Exit code 0: complete; 1: a camera was lost or the take failed; 2: bad input or not enough
     disk; 130: stopped by a signal.
     """
-    from manus_core.rig_config import load_rig
-    from rig.recorder import StopFlag, record_take
-    from rig.sim.subject import with_sim_subject
-
     rig = load_rig(rig_file)
     if all(c.backend == "sim" for c in rig.cameras):   # the simulated cube shows who and what
         rig = with_sim_subject(rig, obj=obj, subject=subject)
     stop = StopFlag()
-    with stop_on_signals(stop):
-        result = record_take(rig, session_dir, take, kind, duration, force=force, subject=subject,
-                             operator=operator, obj=obj, use_leds=not no_leds, level=level,
-                             flash_ms=flash_ms, flash_every_s=flash_every, flash_level=flash_level, stop=stop)
+    options = RecordOptions(force=force, subject=subject, operator=operator, obj=obj, use_leds=not no_leds,
+                            level=level, flash_ms=flash_ms, flash_every_s=flash_every, flash_level=flash_level)
+    with stop_on_signals(stop), Bars(unit="frame") as bars:
+        result = record_take(rig, session_dir, take, kind, duration, options, stop=stop, progress=bars)
     click.echo(summarize(result))
     if result.exit_code:
         raise SystemExit(result.exit_code)

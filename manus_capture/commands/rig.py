@@ -8,7 +8,8 @@ from pathlib import Path
 
 import click
 
-from manus_core.rig_config import load_rig, rig_to_toml
+from manus_core.fileio import write_atomic
+from manus_core.rig_config import BACKENDS, SYNC_MODES, load_rig, rig_to_toml
 from rig.layouts import LAYOUTS, make_rig
 
 
@@ -32,9 +33,8 @@ def command() -> None:
 @click.option("--resolution", default="1280x720", show_default=True, callback=_resolution,
               help="Camera resolution WIDTHxHEIGHT.")
 @click.option("--fps", type=click.FloatRange(min=1), default=120.0, show_default=True)
-@click.option("--backend", type=click.Choice(["sim", "v4l2", "aravis"]), default="sim", show_default=True)
-@click.option("--sync", type=click.Choice(["free-run", "software-trigger", "hardware-trigger"]),
-              default="free-run", show_default=True)
+@click.option("--backend", type=click.Choice(BACKENDS), default="sim", show_default=True)
+@click.option("--sync", type=click.Choice(SYNC_MODES), default="free-run", show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Seed of the simulated imperfections (clock offsets, drift, phases, drops).")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True,
@@ -42,8 +42,6 @@ def command() -> None:
 @click.option("--force", is_flag=True, help="Overwrite an existing file.")
 def init(layout, cameras, resolution, fps, backend, sync, seed, output: Path, force: bool) -> None:
     """Write a rig.toml for a layout, with every camera and every simulated imperfection spelled out."""
-    from manus_core.fileio import write_atomic
-
     if output.exists() and not force:
         raise click.UsageError(f"{output} exists; use --force to overwrite it")
     rig = make_rig(layout, cameras, resolution, fps, backend, seed, sync)

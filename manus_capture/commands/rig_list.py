@@ -6,6 +6,8 @@ import json
 
 import click
 
+from rig.discovery import discover
+
 
 @click.command("list")
 @click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
@@ -13,9 +15,7 @@ import click
 @click.option("--fake", is_flag=True, help="Also list Aravis's built-in fake camera (Fake_1).")
 def list_command(as_json: bool, no_aravis: bool, fake: bool) -> None:
     """List cameras (V4L2 by-id, Aravis) and serial ports; `device` is what rig.toml takes."""
-    from rig.discovery import discover
-
-    found = discover(aravis=not no_aravis, aravis_fake=fake)
+    found = discover(skip={"aravis"} if no_aravis else (), fake=fake)
     if as_json:
         click.echo(json.dumps(found.to_dict(), indent=2))
     else:

@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import click
+import h5py
+import numpy as np
+
+from dataset_tools.annotate import take_key
+from dataset_tools.calibration.formats import load_cameras
+from dataset_tools.segmentation.takes import Segmentation, check_output, segment_take, write_masks, write_overlays
+from manus_capture.bars import Bars
+from manus_capture.paint_contact import paint_on_surface
+from manus_core.cameras import CameraRig
+from manus_core.dataset import add_arrays
+from manus_core.errors import SegmentationError
+from manus_core.take import Take
 
 
 @click.command("segment", context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,14 +41,6 @@ def command(take: Path, calib: Path, background: Path | None, masks: Path | None
             swatch: str | None, every: int, overlays: Path | None, output: Path, force: bool) -> None:
     """Segment TAKE: hand and object masks per view and frame group (background, colour, multi-view
     consistency) and, for a canonical take, the green paint on the hand (docs/segmentation.md)."""
-    from tqdm import tqdm
-
-    from dataset_tools.annotate import take_key
-    from dataset_tools.calibration.formats import load_cameras
-    from dataset_tools.segmentation.background import SegmentationError
-    from dataset_tools.segmentation.takes import check_output, segment_take, write_masks, write_overlays
-    from manus_core.take import Take
-
     start = time.perf_counter()
     colour = None
     if swatch is not None:
@@ -51,33 +54,27 @@ def command(take: Path, calib: Path, background: Path | None, masks: Path | None
         raise SegmentationError(f"{calib}: no such calibration")
     rig = load_cameras(calib)
     check_output(output, take_key(take), force)
-    with tqdm(desc="segment", unit="group", file=sys.stderr) as bar:
-        result = segment_take(take, rig, background, object_take, colour, every, progress=bar.update, masks=masks)
-        groups = len(result["frame_ns"])
+    with Bars(unit="group") as bars:
+        result = segment_take(take, rig, background, object_take, colour, every, progress=bars, masks=masks)
+    groups = len(result.frame_ns)
     write_masks(output, take_key(take), result, {"segmentation_calibration": str(calib),
                                                  "segmentation_background": str(background or ""),
                                                  "segmentation_masks": str(masks or "")})
     surface = ""
-    if result["paint"] is not None:
+    if result.paint is not None:
         surface = _paint_on_surface(output, take_key(take), rig, result)
     if overlays is not None:
         write_overlays(overlays, Take(take), result)
-    for message in result["report"]["warnings"]:
+    for message in result.report["warnings"]:
         click.echo(f"warning: {message}", err=True)
-    paint = "" if result["paint"] is None else f", paint in {int((result['paint'].sum(axis=(1, 2)) > 0).sum())} views"
-    click.echo(f"segment: {groups} groups x {len(result['cameras'])} cameras{paint}{surface} -> {output} "
-               f"({len(result['report']['warnings'])} warnings, {time.perf_counter() - start:.1f} s)")
+    paint = "" if result.paint is None else f", paint in {int((result.paint.sum(axis=(1, 2)) > 0).sum())} views"
+    click.echo(f"segment: {groups} groups x {len(result.cameras)} cameras{paint}{surface} -> {output} "
+               f"({len(result.report['warnings'])} warnings, {time.perf_counter() - start:.1f} s)")
 
 
-def _paint_on_surface(output: Path, key: str, rig, result: dict) -> str:
+def _paint_on_surface(output: Path, key: str, rig: CameraRig, result: Segmentation) -> str:
     """Add the paint's contact value per hand surface point to DATASET.h5 when annotate has fitted
     the take's poses; returns the summary line's part about it."""
-    import h5py
-    import numpy as np
-
-    from manus_core.dataset import add_arrays
-    from manus_capture.paint_contact import paint_on_surface
-
     with h5py.File(output, "r") as f:
         group = f.get(key)
         if group is None or "joint_angles" not in group:
@@ -85,12 +82,12 @@ def _paint_on_surface(output: Path, key: str, rig, result: dict) -> str:
                        err=True)
             return ""
         frame_ns, angles, bones = group["frame_ns"][()], group["joint_angles"][()], group["bone_lengths"][()]
-    t = result["paint_group"]
-    at = np.flatnonzero(frame_ns == result["frame_ns"][t])
+    t = result.paint_group
+    at = np.flatnonzero(frame_ns == result.frame_ns[t])
     if not len(at) or not np.isfinite(angles[at[0]]).all():
         click.echo(f"note: no fitted pose for the paint's frame group of {key}: no contact per surface point", err=True)
         return ""
-    arrays = paint_on_surface(rig.subset(result["cameras"]), result["paint"], result["hand"][t], angles[at[0]], bones)
+    arrays = paint_on_surface(rig.subset(result.cameras), result.paint, result.hand[t], angles[at[0]], bones)
     add_arrays(output, key, arrays)
     painted = int((arrays["paint/contact"] > 0.5).sum())
     return f", paint on {painted} of {int((arrays['paint/voters'] > 0).sum())} seen surface points"

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import io
 import json
-import sys
 from pathlib import Path
 
 import click
 import numpy as np
+
+from manus_capture.bars import Bars
+from manus_core.dataset import FLAGS, read_dataset
 from manus_core.errors import OutputExists
+from manus_core.fileio import write_atomic
 
 THUMB_TIP = 4
 OTHER_TIPS = {"index": 8, "middle": 12, "ring": 16, "pinky": 20}
@@ -17,8 +20,6 @@ OTHER_TIPS = {"index": 8, "middle": 12, "ring": 16, "pinky": 20}
 
 def take_stats(ann) -> dict:
     """Summary numbers of one TakeAnnotation (NaN-aware; frames without a hand are not averaged)."""
-    from manus_core.dataset import FLAGS
-
     views = ann.keypoints3d_views.astype(np.float64)
     found = np.isfinite(ann.keypoints3d).all(-1)
     err = ann.keypoints3d_error_px[found]
@@ -50,12 +51,11 @@ def grip_aperture(ann) -> np.ndarray:
 
 def plot_apertures(anns: list, path: Path) -> None:
     """One panel per take: grip aperture (mm) over time (s); written atomically as PNG."""
+    # matplotlib takes a second to import and only the plot needs it; Agg must come before pyplot
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from manus_core.fileio import write_atomic
 
     fig, axes = plt.subplots(len(anns), 1, figsize=(8, 2.6 * len(anns)), squeeze=False, sharex=False)
     for ax, ann in zip(axes[:, 0], anns):
@@ -90,11 +90,6 @@ def _fmt(x, unit: str = "") -> str:
 def command(dataset: Path, selected: tuple[str, ...], plot: Path | None, json_path: Path | None, force: bool) -> None:
     """Summarize DATASET: per take frames, coverage (views per joint), reprojection error, IK
     residual, frame flags, and a plot of the grip aperture (thumb tip to each fingertip) over time."""
-    from tqdm import tqdm
-
-    from manus_core.dataset import read_dataset
-    from manus_core.fileio import write_atomic
-
     ds = read_dataset(dataset)
     keys = list(selected) or ds.takes
     unknown = [k for k in keys if k not in ds]
@@ -106,10 +101,13 @@ def command(dataset: Path, selected: tuple[str, ...], plot: Path | None, json_pa
         if path is not None and path.exists() and not force:
             raise OutputExists(f"{path}: exists (use --force to overwrite)")
     anns, table = [], {}
-    for key in tqdm(keys, unit="take", desc="stats", file=sys.stderr):
-        ann = ds[key]
-        anns.append(ann)
-        table[key] = take_stats(ann)
+    with Bars(unit="take") as bars:
+        bars("stats", 0, len(keys))
+        for done, key in enumerate(keys, 1):
+            ann = ds[key]
+            anns.append(ann)
+            table[key] = take_stats(ann)
+            bars("stats", done, len(keys))
     header = f"{'take':<28} {'frames':>6} {'fitted':>6} {'views/joint':>11} {'joints %':>8} " \
              f"{'reproj px (med/p95)':>19} {'IK mm (med/p95)':>15}"
     click.echo(header)

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
+
+from dataset_tools.sync import SyncSettings, refuse_overwrite, sync_take
+from manus_capture.bars import Bars
+from manus_core.take import Take
 
 
 @click.command("sync-report", context_settings={"help_option_names": ["-h", "--help"]})
@@ -18,24 +21,19 @@ import click
 @click.option("--optical/--no-optical", default=True, show_default=True,
               help="Check the timestamps against the LED flashes in take.json's LED log.")
 def command(take: Path, force: bool, tolerance_ms: float, max_drop_pct: float, optical: bool) -> None:
-    """Recompute TAKE/sync_report.json, sync_report.md and sync_timeline.png.
+    """Recompute TAKE/sync_report.json, sync_report.md, sync_timeline.png and frame_groups.npz.
 
     Per camera: clock offset and drift (robust fit of device to host time), drops from sequence
     gaps, timestamp faults, frame-interval jitter. Per take: frame groups on the nominal ticks,
-    the exposure spread within them, the LED optical check and a verdict. Exit code 1 when the
-    verdict is fail. See docs/sync.md.
+    the exposure spread within them, the LED optical check and a verdict. The frame groups are
+    saved beside the report: annotate and segment work on them. Exit code 1 when the verdict is
+    fail. See docs/sync.md.
     """
-    from tqdm import tqdm
-
-    from dataset_tools.sync import SyncSettings, refuse_overwrite, sync_take, take_flashes
-    from manus_core.take import Take
-
     tk = Take(take)
     refuse_overwrite(tk.path, force)
     settings = SyncSettings(tolerance_ms=tolerance_ms, max_drop_pct=max_drop_pct)
-    with tqdm(total=len(tk.cameras), unit="camera", desc="optical check", file=sys.stderr,
-              disable=not (optical and take_flashes(tk))) as bar:
-        report = sync_take(tk.path, force=force, optical=optical, settings=settings, progress=bar.update)
+    with Bars(unit="camera") as bars:
+        report = sync_take(tk.path, force=force, optical=optical, settings=settings, progress=bars)
     sp = report["spread_ms"]
     dropped = sum(c["frames_dropped"] for c in report["cameras"].values())
     spread = "n/a" if sp["p95"] is None else f"{sp['p95']:.3f} ms"

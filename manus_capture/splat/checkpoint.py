@@ -23,22 +23,26 @@ import os
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
+from safetensors.torch import save
 
+from manus_core.errors import CheckpointError
 from manus_core.fileio import write_atomic
 
 from .gaussians import PARAM_NAMES, Gaussians
-from manus_core.errors import CheckpointError
 
 FORMAT = "manus-capture-splat"
 VERSION = "1"
+# The file names what the tensors hold; in memory the parameters carry gsplat's names.
+FILE_NAMES = {"scales": "log_scales", "opacities": "opacity_logits"}
+PARAM_FILE_NAMES = tuple(FILE_NAMES.get(name, name) for name in PARAM_NAMES)
 
 
 def save_checkpoint(path: str | os.PathLike, gaussians: Gaussians, kind: str = "object",
                     extra: dict[str, torch.Tensor] | None = None, metadata: dict[str, str] | None = None) -> None:
     """Write the model (and `extra` tensors, e.g. the hand's skinning grid) to `path` atomically."""
-    from safetensors.torch import save
-
-    tensors = {k: v.detach().to("cpu", torch.float32).contiguous() for k, v in gaussians.tensors().items()}
+    tensors = {FILE_NAMES.get(k, k): v.detach().to("cpu", torch.float32).contiguous()
+               for k, v in gaussians.tensors().items()}
     for name, value in (extra or {}).items():
         if name in tensors:
             raise ValueError(f"extra tensor {name!r} would overwrite a Gaussian parameter")
@@ -51,8 +55,6 @@ def save_checkpoint(path: str | os.PathLike, gaussians: Gaussians, kind: str = "
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu"
                     ) -> tuple[Gaussians, dict[str, torch.Tensor], dict[str, str]]:
     """(gaussians, extra tensors, metadata) from a checkpoint written by save_checkpoint."""
-    from safetensors import safe_open
-
     path = Path(path)
     try:
         with safe_open(str(path), framework="pt", device=str(device)) as f:
@@ -66,7 +68,7 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu"
         raise CheckpointError(f"{path}: not a manus-capture splat checkpoint (format {meta.get('format')!r})")
     if meta.get("version") != VERSION:
         raise CheckpointError(f"{path}: checkpoint version {meta.get('version')!r}, this software reads {VERSION}")
-    missing = [k for k in PARAM_NAMES if k not in tensors]
+    missing = [k for k in PARAM_FILE_NAMES if k not in tensors]
     if missing:
         raise CheckpointError(f"{path}: checkpoint lacks {', '.join(missing)}")
     sh = torch.cat([tensors["sh0"], tensors["shN"]], dim=1)
@@ -75,5 +77,5 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu"
                               sh, int(meta.get("sh_degree", -1)))
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
-    extra = {k: v for k, v in tensors.items() if k not in PARAM_NAMES}
+    extra = {k: v for k, v in tensors.items() if k not in PARAM_FILE_NAMES}
     return gaussians, extra, meta

@@ -11,11 +11,14 @@ from __future__ import annotations
 import math
 
 import torch
+from scipy.spatial import cKDTree
 
 from .sh import num_sh_bases
 
-# Parameter names, in the order in which checkpoints and optimizers list them.
-PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh0", "shN")
+# Parameter names, in the order in which checkpoints and optimizers list them. They are gsplat's,
+# with its conventions, so that gsplat's densification strategies can edit them: "scales" holds
+# the logarithms of the scales and "opacities" the logits of the opacities.
+PARAM_NAMES = ("means", "quats", "scales", "opacities", "sh0", "shN")
 
 # 0th-order SH basis constant: a colour c maps to the DC coefficient (c - 0.5) / C0.
 SH_C0 = 0.28209479177387814
@@ -58,8 +61,9 @@ def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
 class Gaussians(torch.nn.Module):
     """A set of N Gaussians with spherical-harmonics colour of degree `sh_degree` (0 to 3).
 
-    The parameters live in `self.params` (a ParameterDict keyed by PARAM_NAMES) so that the
-    densification strategy can replace them, row by row, together with the optimizer state.
+    The parameters live in `self.params` (a ParameterDict keyed by PARAM_NAMES, the `params` of
+    gsplat's strategy API) so that a densification strategy can replace them, row by row,
+    together with the optimizer state.
     """
 
     def __init__(self, means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor,
@@ -80,8 +84,8 @@ class Gaussians(torch.nn.Module):
         self.params = torch.nn.ParameterDict({
             "means": P(means.detach().clone()),
             "quats": P(quats.detach().clone()),
-            "log_scales": P(log_scales.detach().clone()),
-            "opacity_logits": P(opacity_logits.detach().clone()),
+            "scales": P(log_scales.detach().clone()),
+            "opacities": P(opacity_logits.detach().clone()),
             "sh0": P(sh[:, :1].detach().clone()),
             "shN": P(sh[:, 1:].detach().clone()),
         })
@@ -115,13 +119,13 @@ class Gaussians(torch.nn.Module):
         gaussians = cls.from_points(points, colors, sh_degree, opacity=opacity)
         with torch.no_grad():
             gaussians.params["quats"].copy_(quats_facing(normals.to(points.dtype)))
-            gaussians.params["log_scales"][:, 2].clamp_(max=math.log(thin))
+            gaussians.params["scales"][:, 2].clamp_(max=math.log(thin))
         return gaussians
 
     @torch.no_grad()
     def cap_scales(self, max_scale: float | None = None, thin: float | None = None) -> None:
         """Clamp every axis to `max_scale` and the third one (a surfel's normal) to `thin` (m)."""
-        log_scales = self.params["log_scales"]
+        log_scales = self.params["scales"]
         if max_scale is not None:
             log_scales.clamp_(max=math.log(max_scale))
         if thin is not None:
@@ -140,11 +144,11 @@ class Gaussians(torch.nn.Module):
 
     @property
     def scales(self) -> torch.Tensor:
-        return self.params["log_scales"].exp()
+        return self.params["scales"].exp()
 
     @property
     def opacities(self) -> torch.Tensor:
-        return torch.sigmoid(self.params["opacity_logits"])
+        return torch.sigmoid(self.params["opacities"])
 
     @property
     def sh(self) -> torch.Tensor:
@@ -161,8 +165,6 @@ class Gaussians(torch.nn.Module):
 
 def nearest_neighbour_scale(points: torch.Tensor, k: int = 3) -> torch.Tensor:
     """Root mean square distance of each point to its k nearest neighbours, (N,)."""
-    from scipy.spatial import cKDTree
-
     pts = points.detach().cpu().double().numpy()
     if len(pts) <= 1:
         return torch.full((len(pts),), 0.01, dtype=points.dtype, device=points.device)

@@ -22,22 +22,22 @@ The model lives in the canonical (rest) frame of manus_core.skeleton:
 from __future__ import annotations
 
 import math
-import sys
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from manus_core.progress import Progress, silent
 from manus_core.skeleton import BONES, HandSkeleton
 
 from .gaussians import Gaussians
-from .losses import LossWeights, load_lpips
+from .losses import LossWeights, image_loss, load_lpips
+from .optimize import Densification, LearningRates, Strategy, decay_means_lr, make_optimizers, optimize_step
 from .rasterize import EPS2D, rasterize
 from .sh import eval_sh
 from .strategy import DensifyStrategy
-from .trainer import (LearningRates, Views, add_scores, decay_means_lr, image_loss, make_optimizer, optimize_step,
-                      surfel_settings)
+from .trainer import Views, add_scores, surfel_settings
 
 N_BONES = 20
 
@@ -246,7 +246,7 @@ class HandGaussians(torch.nn.Module):
 
 @dataclass
 class HandConfig:
-    """Settings of `train_hand`."""
+    """Settings of `train_hand`; densify as ObjectConfig's."""
 
     iterations: int = 10_000
     sh_degree: int = 3
@@ -255,7 +255,7 @@ class HandConfig:
     skin_lr: float = 1e-3
     weights: LossWeights = field(default_factory=LossWeights)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    densify: DensifyStrategy | None = field(default_factory=DensifyStrategy)
+    densify: Strategy | None = field(default_factory=DensifyStrategy)
     lpips_weights: str | None = None
     lpips_net: str = "alex"
     chunk_elements: int | None = None
@@ -269,7 +269,7 @@ class HandConfig:
         """Settings for short CPU runs on capture takes (see ObjectConfig.fast): the initial
         Gaussians only, the initial skinning weights, SH degree 1, faster colour and scale steps."""
         base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), densify=None,
-                    skin_lr=0.0, lr=LearningRates(sh0=1e-2, log_scales=1e-2))
+                    skin_lr=0.0, lr=LearningRates(sh0=1e-2, scales=1e-2))
         return cls(**{**base, **changes})
 
     @classmethod
@@ -279,15 +279,13 @@ class HandConfig:
 
 
 def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], config: HandConfig | None = None,
-               progress: bool = True) -> list[dict[str, float]]:
+               progress: Progress = silent) -> list[dict[str, float]]:
     """Fit a MANUS-Hand model to views of the hand in several poses; returns the loss history.
 
     poses (P,26) joint angles; views[p] the calibrated images (with hand masks when known) of
     pose p (poses without views are passed over). Every step renders one view of one pose. The
-    model is changed in place.
+    model is changed in place. Reports progress("hand", step, iterations).
     """
-    from tqdm import tqdm
-
     cfg = config or HandConfig()
     gen = torch.Generator().manual_seed(cfg.seed)
     bg = torch.tensor(cfg.background, dtype=torch.float32, device=model.gaussians.means.device)
@@ -296,32 +294,34 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
     lpips = load_lpips(cfg.lpips_weights, cfg.lpips_net) if cfg.weights.lpips > 0 else None
     # skin_lr = 0 keeps the initial weights (and saves the Adam update of the whole grid).
     model.skin_grid.requires_grad_(cfg.skin_lr > 0)
-    extra = [{"params": [model.skin_grid], "name": "skin_grid", "lr": cfg.skin_lr}] if cfg.skin_lr > 0 else []
-    optimizer = make_optimizer(model.gaussians, cfg.lr, scene_scale, extra=extra)
-    strategy = None if cfg.densify is None else replace(cfg.densify, scene_scale=scene_scale)
+    gaussian_optimizers = make_optimizers(model.gaussians, cfg.lr, scene_scale)
+    optimizers = dict(gaussian_optimizers)
+    if cfg.skin_lr > 0:  # the grid is no Gaussian parameter: no strategy sees its optimizer
+        optimizers["skin_grid"] = torch.optim.Adam([{"params": [model.skin_grid], "name": "skin_grid",
+                                                     "lr": cfg.skin_lr}], eps=1e-15)
+    densify = None if cfg.densify is None else Densification.start(cfg.densify, model.gaussians.params,
+                                                                   gaussian_optimizers, scene_scale)
     history = []
-    bar = tqdm(range(1, cfg.iterations + 1), desc="hand", unit="it", file=sys.stderr, disable=not progress)
     usable = [i for i, v in enumerate(views) if len(v)]
     if not usable:
         raise ValueError("train_hand: no pose has a view")
-    for step in bar:
+    progress("hand", 0, cfg.iterations)
+    for step in range(1, cfg.iterations + 1):
         p = usable[int(torch.randint(len(usable), (1,), generator=gen))]
         v = int(torch.randint(len(views[p]), (1,), generator=gen))
-        decay_means_lr(optimizer, cfg.lr, scene_scale, step, cfg.iterations)
+        means_lr = decay_means_lr(optimizers["means"], cfg.lr, scene_scale, step, cfg.iterations)
         degree = min(cfg.sh_degree, step // cfg.sh_increase_every)
         view = views[p]
-        rgb, alpha, meta = model.render(poses[p], view.viewmats[v:v + 1], view.Ks[v:v + 1], view.width,
+        rgb, alpha, info = model.render(poses[p], view.viewmats[v:v + 1], view.Ks[v:v + 1], view.width,
                                         view.height, bg, sh_degree=degree, return_meta=True,
                                         chunk_elements=cfg.chunk_elements, eps2d=cfg.eps2d)
         loss, parts = image_loss(rgb, targets[p][v:v + 1], model.gaussians.scales, cfg.weights, lpips, alpha,
                                  None if view.masks is None else view.masks[v:v + 1])
-        record = optimize_step(model.gaussians, optimizer, strategy, loss, parts, meta, step)
+        history.append(optimize_step(model.gaussians.params, optimizers, densify, loss, parts, info, step, means_lr))
         # small splats cannot stand for the hand from inside it: to cover the silhouettes their
         # centres must stay on the surface, where contact is measured
         model.gaussians.cap_scales(cfg.max_scale, cfg.thin)
-        history.append(record)
-        if step % 10 == 0 or step == cfg.iterations:
-            bar.set_postfix(loss=f"{record['loss']:.4f}", n=len(model))
+        progress("hand", step, cfg.iterations)
     return history
 
 

@@ -1,4 +1,5 @@
-"""Training losses and image metrics: L1, SSIM, PSNR, the isotropy regularizer and LPIPS.
+"""Training losses and image metrics: L1, SSIM, PSNR, the isotropy regularizer, LPIPS, and the
+weighted training loss of the trainers (`image_loss`).
 
 Images are NCHW in [0, 1] unless a function says otherwise.
 
@@ -17,6 +18,8 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from safetensors.torch import load_file
+
 from manus_core.errors import LPIPSWeightsError
 
 
@@ -181,8 +184,6 @@ def load_lpips(weights: str | Path | None, net: str = "alex") -> LPIPS | None:
         return None
     path = Path(weights)
     if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
         state = load_file(str(path))
     else:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -195,3 +196,16 @@ def load_lpips(weights: str | Path | None, net: str = "alex") -> LPIPS | None:
     return model.requires_grad_(False)
 
 
+def image_loss(pred: torch.Tensor, target: torch.Tensor, scales: torch.Tensor, weights: LossWeights,
+               lpips: LPIPS | None, alpha: torch.Tensor | None = None,
+               mask: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Weighted L1 + (1 - SSIM) + LPIPS + isotropy of rendered (C,H,W,3) against target images,
+    and with weights.mask, the L1 of the rendered alpha (C,H,W,1) against the masks (C,H,W)."""
+    p, t = pred.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
+    parts = {"l1": l1(p, t), "ssim": 1 - ssim(p, t), "isotropy": isotropy(scales)}
+    if lpips is not None:
+        parts["lpips"] = lpips(p, t).mean()
+    if weights.mask > 0 and alpha is not None and mask is not None:
+        parts["mask"] = l1(alpha[..., 0], mask.to(alpha.dtype))
+    loss = sum(getattr(weights, k) * v for k, v in parts.items())
+    return loss, {k: float(v.detach()) for k, v in parts.items()}

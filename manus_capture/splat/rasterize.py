@@ -306,6 +306,11 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     return out_color, out_alpha
 
 
+def drawn(radii: torch.Tensor) -> torch.Tensor:
+    """(C,N) bool: the splats that reach a pixel, from radii (C,N,2), or (C,N) as older gsplat gives."""
+    return (radii > 0).all(-1) if radii.dim() == 3 else radii > 0
+
+
 def gsplat_available() -> bool:
     """True when the optional gsplat package imports (it needs CUDA to rasterize)."""
     try:
@@ -342,9 +347,11 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
     and the inputs are on a CUDA device). chunk_elements bounds tiles x pixels x list length per
     compositing chunk, hence peak memory (default 2^18 on the CPU, where chunks that fit the
     caches are fastest, 2^25 on CUDA). The default tile of 8x8 pixels (gsplat: 16x16) wastes
-    less work on small splats; the image does not depend on it. With return_meta, meta holds means2d (C,N,2; call
-    retain_grad() on it for densification statistics), radii (C,N), depths, conics, visible and
-    n_isects.
+    less work on small splats; the image does not depend on it. With return_meta, meta holds what
+    gsplat's `rasterization` returns for its densification strategies: means2d (C,N,2; call
+    retain_grad() on it for their statistics), radii (C,N,2) integer 3-sigma half-widths in pixels
+    (0: not drawn), width, height, n_cameras and gaussian_ids (None: not packed); and depths,
+    conics, visible (C,N) and n_isects.
     """
     C, N = viewmats.shape[0], means.shape[0]
     if viewmats.shape != (C, 4, 4) or Ks.shape != (C, 3, 3):
@@ -389,8 +396,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
     meta: dict[str, Any] = {
         "means2d": proj["means2d"], "conics": proj["conics"], "depths": proj["depths"],
         "visible": bins["visible"],
-        "radii": torch.where(bins["visible"], proj["extents"].amax(-1).ceil(), 0).long(),
+        "radii": torch.where(bins["visible"][..., None], proj["extents"].ceil(), 0).long(),
         "n_isects": int(bins["gaussian_ids"].numel()), "width": width, "height": height, "n_cameras": C,
+        "gaussian_ids": None,
     }
     return rgb, alpha, meta
 
@@ -399,7 +407,7 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, wid
                       covars, sh_degree, near_plane, far_plane, eps2d, return_meta):
     """The same call on gsplat's CUDA kernels (pixel centres shifted to gsplat's half-integers;
     gsplat's own 16x16 tiles, the size its kernels are tuned for)."""
-    import gsplat
+    import gsplat  # optional, and CUDA only: imported where it is used
 
     C = viewmats.shape[0]
     Ks = Ks.clone()
@@ -415,7 +423,6 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, wid
         covars=covars, packed=False)
     if not return_meta:
         return rgb, alpha
-    radii = meta["radii"]  # (C,N) in older gsplat, (C,N,2) in newer
-    meta["visible"] = (radii > 0).all(-1) if radii.dim() == 3 else radii > 0
+    meta["visible"] = drawn(meta["radii"])
     meta["n_cameras"] = C
     return rgb, alpha, meta

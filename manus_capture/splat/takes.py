@@ -27,14 +27,20 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+import h5py
 import numpy as np
 import torch
 
 from manus_core.cameras import CameraRig, scale_intrinsics
+from manus_core.dataset import read_dataset
+from manus_core.errors import TakeInputError
+from manus_core.ground_truth import FILE_NAME as GROUND_TRUTH
+from manus_core.ground_truth import GroundTruth, TruthHand
+from manus_core.skeleton import HandSkeleton
 from manus_core.take import Take
 
 from .trainer import Views
-from manus_core.errors import TakeInputError
 
 OBJECT_LABELS = (2,)
 HAND_LABELS = (1, 3)
@@ -44,7 +50,7 @@ JOINTS_ON_MASK = 0.9
 # --- ground truth of simulated takes -----------------------------------------------------------
 
 def _truth_path(take_path: str | os.PathLike) -> Path:
-    path = Path(take_path) / "ground_truth.h5"
+    path = Path(take_path) / GROUND_TRUTH
     if not path.is_file():
         raise TakeInputError(f"{path}: missing (only simulated takes have ground truth)")
     return path
@@ -52,38 +58,27 @@ def _truth_path(take_path: str | os.PathLike) -> Path:
 
 def truth_cameras(take_path: str | os.PathLike) -> CameraRig:
     """The exact cameras of a simulated take (ground_truth.h5 `cameras/...`)."""
-    import h5py
-
-    with h5py.File(_truth_path(take_path), "r") as f:
-        g = f["cameras"]
-        ids = tuple(i.decode() if isinstance(i, bytes) else str(i) for i in g["ids"][()])
-        return CameraRig(ids, g["K"][()], g["dist"][()], g["R"][()], g["t"][()], g["size"][()])
+    return GroundTruth(_truth_path(take_path)).cameras.rig()
 
 
 def truth_labels(take_path: str | os.PathLike, cameras: Sequence[str], seqs: np.ndarray) -> np.ndarray:
     """Per-pixel labels (T,C,H,W) uint8 of the frames with sequence numbers seqs (T,C) (-1: none,
     left 0) from a simulated take's ground truth; TakeInputError when a frame has no labels."""
-    import h5py
-
     path = _truth_path(take_path)
     seqs = np.asarray(seqs)
-    with h5py.File(path, "r") as f:
-        gt_ids = [i.decode() if isinstance(i, bytes) else str(i) for i in f["cameras/ids"][()]]
-        labelled = {int(t): j for j, t in enumerate(f["labels/frames"][()])}
-        image = f["labels/image"]
-        out = np.zeros((seqs.shape[0], len(cameras)) + image.shape[2:], np.uint8)
-        missing = sorted({int(t) for t in seqs[seqs >= 0]} - labelled.keys())
-        if missing:
-            raise TakeInputError(f"{path}: no labels for tick {missing[0]} (labelled ticks: "
-                                 f"{', '.join(map(str, sorted(labelled))) or 'none'})")
-        for c, cam in enumerate(cameras):
-            if cam not in gt_ids:
-                raise TakeInputError(f"{path}: no camera {cam!r} in the ground truth")
-            rows = np.flatnonzero(seqs[:, c] >= 0)
-            wanted = np.array([labelled[int(t)] for t in seqs[rows, c]], np.int64)
-            # one read per camera (h5py wants increasing, distinct indices)
-            unique, back = np.unique(wanted, return_inverse=True)
-            out[rows, c] = image[gt_ids.index(cam), unique.tolist()][back]
+    gt = GroundTruth(path)
+    gt_ids = list(gt.cameras.ids)
+    labelled = {int(t): j for j, t in enumerate(gt.label_frames)}
+    missing = sorted({int(t) for t in seqs[seqs >= 0]} - labelled.keys())
+    if missing:
+        raise TakeInputError(f"{path}: no labels for tick {missing[0]} (labelled ticks: "
+                             f"{', '.join(map(str, sorted(labelled))) or 'none'})")
+    out = np.zeros((seqs.shape[0], len(cameras)) + gt.label_size, np.uint8)
+    for c, cam in enumerate(cameras):
+        if cam not in gt_ids:
+            raise TakeInputError(f"{path}: no camera {cam!r} in the ground truth")
+        rows = np.flatnonzero(seqs[:, c] >= 0)
+        out[rows, c] = gt.label_images([gt_ids.index(cam)] * len(rows), [labelled[int(t)] for t in seqs[rows, c]])
     return out
 
 
@@ -106,8 +101,6 @@ def frames_with_seq(take: Take, cameras: Sequence[str], seqs: Sequence[int]) -> 
 
 def read_frames(take: Take, cam: str, indices: Sequence[int]) -> dict[int, np.ndarray]:
     """{k: image (H,W,3) BGR uint8} for the frame indices asked for; only those are decoded."""
-    import cv2
-
     wanted = {int(k) for k in indices if k >= 0}
     out: dict[int, np.ndarray] = {}
     if not wanted:
@@ -143,8 +136,6 @@ def undistort(rig: CameraRig, images: Sequence[np.ndarray], masks: Sequence[np.n
               scale: float = 1.0) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Undistort and reduce: (images (V,H,W,3) float32 RGB in [0,1], masks (V,H,W) bool | None,
     K (V,3,3)) for BGR uint8 images of the rig's cameras, in rig order."""
-    import cv2
-
     out_images, out_masks, Ks = [], [], []
     for i, image in enumerate(images):
         K, dist = rig.K[i], rig.dist[i]
@@ -235,10 +226,7 @@ def object_views_from_take(take_path: str | os.PathLike, rig: CameraRig, frame: 
     if isinstance(masks, str) and masks != "truth":
         raise ValueError(f"masks must be an array, 'truth' or None, not {masks!r}")
     if frame is None and isinstance(masks, str):
-        import h5py
-
-        with h5py.File(_truth_path(take_path), "r") as f:
-            ticks = f["labels/frames"][()]
+        ticks = GroundTruth(_truth_path(take_path)).label_frames
         index = frames_with_seq(take, rig.ids, ticks)
         complete = np.flatnonzero((index >= 0).all(1))
         if not len(complete):
@@ -281,13 +269,11 @@ class HandFrames:
 
 def hand_frames_from_truth(take_path: str | os.PathLike) -> HandFrames:
     """Every tick of a simulated hand take with its true joint angles and bone lengths."""
-    import h5py
-
     path = _truth_path(take_path)
-    with h5py.File(path, "r") as f:
-        if "hand" not in f:
-            raise TakeInputError(f"{path}: no hand in this take's ground truth")
-        angles, bones = f["hand/joint_angles"][()], f["hand/bone_lengths"][()]
+    gt = GroundTruth(path)
+    if not gt.has(TruthHand):
+        raise TakeInputError(f"{path}: no hand in this take's ground truth")
+    angles, bones = gt.hand.joint_angles, gt.hand.bone_lengths
     take = Take(take_path)
     index = frames_with_seq(take, take.cameras, np.arange(len(angles)))
     return HandFrames(angles, bones, index, take.cameras, f"{path}")
@@ -298,8 +284,6 @@ def hand_frames_from_dataset(dataset_path: str | os.PathLike, take_key: str | No
 
     take_key "SESSION/TAKE"; None when the dataset holds one take only.
     """
-    from manus_core.dataset import read_dataset
-
     ds = read_dataset(dataset_path)
     if take_key is None:
         if len(ds) != 1:
@@ -316,10 +300,6 @@ def hand_masks_from_dataset(dataset_path: str | os.PathLike, take_key: str | Non
                             cameras: Sequence[str]) -> np.ndarray:
     """Hand masks (P,C,H,W) that `segment` stored for a take (masks/hand), for annotation rows
     `rows` of that take (matched on frame_ns) and `cameras` in that order."""
-    import h5py
-
-    from manus_core.dataset import read_dataset
-
     ds = read_dataset(dataset_path)
     key = take_key or (ds.takes[0] if len(ds) == 1 else None)
     if key is None or key not in ds:
@@ -387,8 +367,6 @@ def hand_views_from_take(take_path: str | os.PathLike, rig: CameraRig, hand: Han
     views[i] belongs to frames[i] always: a pose no camera sees well gets an empty Views, which
     train_hand and evaluate_hand pass over.
     """
-    from manus_core.skeleton import HandSkeleton
-
     take = _open(take_path, rig)
     frames = [int(f) for f in frames]
     if not frames:
@@ -432,8 +410,6 @@ def hand_views_from_take(take_path: str | os.PathLike, rig: CameraRig, hand: Han
 
 def _hand_visible(mask: np.ndarray, uv: np.ndarray) -> bool:
     """Whether the joints (21,2) that project into the image land on the (2-pixel dilated) mask."""
-    import cv2
-
     h, w = mask.shape
     px = np.rint(uv).astype(np.int64)
     inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)

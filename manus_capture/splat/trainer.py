@@ -16,17 +16,19 @@ surface; a disc seen edge-on only covers it from the surface.
 
 from __future__ import annotations
 
-import math
-import sys
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
-from .gaussians import PARAM_NAMES, Gaussians
-from .losses import LPIPS, LossWeights, isotropy, l1, load_lpips, psnr, ssim
+from manus_core.progress import Progress, silent
+
+from .gaussians import Gaussians
+from .losses import LPIPS, LossWeights, image_loss, load_lpips, psnr, ssim
+from .optimize import Densification, LearningRates, Strategy, decay_means_lr, make_optimizers, optimize_step
 from .rasterize import EPS2D, rasterize
-from .strategy import DensifyStrategy, nearest_pixels
+from .strategy import DensifyStrategy, nearest_pixels, prune_outside_masks
 
 
 def world_to_camera(R, t) -> torch.Tensor:
@@ -94,19 +96,6 @@ class Views:
         return torch.where(self.masks[..., None], self.images, background.to(self.images.dtype))
 
 
-@dataclass
-class LearningRates:
-    """Adam step sizes per parameter (3DGS defaults); means scale with the scene and decay."""
-
-    means: float = 1.6e-4
-    means_final: float = 1.6e-6
-    quats: float = 1e-3
-    log_scales: float = 5e-3
-    opacity_logits: float = 5e-2
-    sh0: float = 2.5e-3
-    shN: float = 2.5e-3 / 20
-
-
 # At the capture takes' resolutions a pixel is a few millimetres on the subject, and 3DGS's blur
 # draws a surface of splats about a pixel larger than it is: the fit then pulls the centres that
 # far inside. On the 12-camera 320x180 demo the hand's centres sat a median 2.9 mm inside its
@@ -123,7 +112,8 @@ SURFEL_MASK_WEIGHT = 3.0
 
 @dataclass
 class ObjectConfig:
-    """Settings of `train_object`. densify=None keeps the number of Gaussians fixed."""
+    """Settings of `train_object`. densify: any strategy with gsplat's API (optimize.Strategy);
+    None keeps the number of Gaussians fixed."""
 
     iterations: int = 7000
     sh_degree: int = 3
@@ -133,7 +123,7 @@ class ObjectConfig:
     lr: LearningRates = field(default_factory=LearningRates)
     weights: LossWeights = field(default_factory=LossWeights)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    densify: DensifyStrategy | None = field(default_factory=DensifyStrategy)
+    densify: Strategy | None = field(default_factory=DensifyStrategy)
     mask_prune_views: int = 1
     lpips_weights: str | None = None
     lpips_net: str = "alex"
@@ -149,7 +139,7 @@ class ObjectConfig:
         set of 3000 half-opaque Gaussians (no densification), SH degree 1 (enough for the view-
         dependent shading of matte surfaces), 4x faster colour and 2x faster scale steps."""
         base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), init_points=3000,
-                    init_opacity=0.5, densify=None, lr=LearningRates(sh0=1e-2, log_scales=1e-2))
+                    init_opacity=0.5, densify=None, lr=LearningRates(sh0=1e-2, scales=1e-2))
         return cls(**{**base, **changes})
 
     @classmethod
@@ -270,8 +260,6 @@ def hull_surface(views: Views, n: int, generator: torch.Generator, neighbours: i
     some axis leaves the hull; its normal is the direction of least spread of its neighbours
     (PCA), turned to the side where a step leaves the hull (away from the hull's centre where
     both or neither side does), and the point is moved out along it onto the boundary."""
-    from scipy.spatial import cKDTree
-
     if views.masks is None:
         raise ValueError("surfels on the visual hull need masks")
     lo, hi = hull_box(views)
@@ -317,53 +305,6 @@ def mean_colour(points: torch.Tensor, views: Views) -> torch.Tensor:
     return (rgb.sum(0) / seen.sum(0).clamp_min(1)[:, None]).clamp(0, 1)
 
 
-def make_optimizer(gaussians: Gaussians, lr: LearningRates, scene_scale: float,
-                   extra: list[dict] | None = None) -> torch.optim.Adam:
-    """Adam with one parameter group per Gaussian parameter (named), plus `extra` groups."""
-    groups = [{"params": [gaussians.params[name]], "name": name,
-               "lr": getattr(lr, name) * (scene_scale if name == "means" else 1.0)} for name in PARAM_NAMES]
-    return torch.optim.Adam(groups + (extra or []), eps=1e-15)
-
-
-def decay_means_lr(optimizer: torch.optim.Optimizer, lr: LearningRates, scene_scale: float,
-                   step: int, total: int) -> None:
-    """Exponential decay of the means' step size from lr.means to lr.means_final (times scale)."""
-    frac = min(step / max(total, 1), 1.0)
-    value = scene_scale * math.exp((1 - frac) * math.log(lr.means) + frac * math.log(lr.means_final))
-    for group in optimizer.param_groups:
-        if group.get("name") == "means":
-            group["lr"] = value
-
-
-def image_loss(pred: torch.Tensor, target: torch.Tensor, scales: torch.Tensor, weights: LossWeights,
-               lpips: LPIPS | None, alpha: torch.Tensor | None = None,
-               mask: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-    """Weighted L1 + (1 - SSIM) + LPIPS + isotropy of rendered (C,H,W,3) against target images,
-    and with weights.mask, the L1 of the rendered alpha (C,H,W,1) against the masks (C,H,W)."""
-    p, t = pred.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
-    parts = {"l1": l1(p, t), "ssim": 1 - ssim(p, t), "isotropy": isotropy(scales)}
-    if lpips is not None:
-        parts["lpips"] = lpips(p, t).mean()
-    if weights.mask > 0 and alpha is not None and mask is not None:
-        parts["mask"] = l1(alpha[..., 0], mask.to(alpha.dtype))
-    loss = sum(getattr(weights, k) * v for k, v in parts.items())
-    return loss, {k: float(v.detach()) for k, v in parts.items()}
-
-
-def optimize_step(gaussians: Gaussians, optimizer: torch.optim.Optimizer, strategy: DensifyStrategy | None,
-                  loss: torch.Tensor, parts: dict[str, float], meta: dict, step: int) -> dict[str, float]:
-    """Backward, Adam step and densification of one training step; returns the step's record."""
-    if strategy is not None:
-        strategy.before_backward(meta)
-    loss.backward()
-    optimizer.step()
-    optimizer.zero_grad(set_to_none=True)
-    record = {"step": step, "loss": float(loss.detach()), "n": len(gaussians), **parts}
-    if strategy is not None:
-        record.update(strategy.after_backward(gaussians, optimizer, meta, step))
-    return record
-
-
 def render(gaussians: Gaussians, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
            background: torch.Tensor, sh_degree: int | None = None, **kwargs):
     """Render a model into cameras with rasterize(); sh_degree defaults to the model's."""
@@ -405,10 +346,9 @@ def add_scores(scores: dict[str, list[float]], rendered: torch.Tensor, views: "V
 
 
 def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussians | None = None,
-                 progress: bool = True) -> TrainResult:
-    """Fit static Gaussians to calibrated views (with masks when given); see the module doc."""
-    from tqdm import tqdm
-
+                 progress: Progress = silent) -> TrainResult:
+    """Fit static Gaussians to calibrated views (with masks when given); see the module doc.
+    Reports progress("object", step, iterations)."""
     cfg = config or ObjectConfig()
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
@@ -426,31 +366,28 @@ def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussia
     lpips = load_lpips(cfg.lpips_weights, cfg.lpips_net) if cfg.weights.lpips > 0 else None
     if lpips is not None:
         lpips = lpips.to(views.images.device)
-    optimizer = make_optimizer(gaussians, cfg.lr, scene_scale)
-    strategy = None if cfg.densify is None else replace(cfg.densify, scene_scale=scene_scale)
-
+    optimizers = make_optimizers(gaussians, cfg.lr, scene_scale)
+    densify = None if cfg.densify is None else Densification.start(cfg.densify, gaussians.params, optimizers,
+                                                                   scene_scale)
     history = []
     order = torch.randperm(len(views), generator=gen)
-    bar = tqdm(range(1, cfg.iterations + 1), desc="object", unit="it", file=sys.stderr, disable=not progress)
-    for step in bar:
+    progress("object", 0, cfg.iterations)
+    for step in range(1, cfg.iterations + 1):
         i = int(order[(step - 1) % len(views)])
         if step % len(views) == 0:
             order = torch.randperm(len(views), generator=gen)
-        decay_means_lr(optimizer, cfg.lr, scene_scale, step, cfg.iterations)
+        means_lr = decay_means_lr(optimizers["means"], cfg.lr, scene_scale, step, cfg.iterations)
         degree = min(cfg.sh_degree, step // cfg.sh_increase_every)
-        rgb, alpha, meta = render(gaussians, views.viewmats[i:i + 1], views.Ks[i:i + 1], views.width, views.height,
+        rgb, alpha, info = render(gaussians, views.viewmats[i:i + 1], views.Ks[i:i + 1], views.width, views.height,
                                   bg, sh_degree=degree, return_meta=True, chunk_elements=cfg.chunk_elements,
                                   eps2d=cfg.eps2d)
         loss, parts = image_loss(rgb, targets[i:i + 1], gaussians.scales, cfg.weights, lpips, alpha,
                                  None if views.masks is None else views.masks[i:i + 1])
-        record = optimize_step(gaussians, optimizer, strategy, loss, parts, meta, step)
+        record = optimize_step(gaussians.params, optimizers, densify, loss, parts, info, step, means_lr)
         gaussians.cap_scales(cfg.max_scale, cfg.thin)
-        if strategy is not None:
-            due = strategy.refine_start < step < strategy.refine_stop and step % strategy.refine_every == 0
-            if due and views.masks is not None:
-                record["mask_pruned"] = strategy.prune_outside_masks(
-                    gaussians, optimizer, views.viewmats, views.Ks, views.masks, cfg.mask_prune_views)
+        if densify is not None and views.masks is not None and densify.refines_at(step):
+            record["mask_pruned"] = prune_outside_masks(gaussians.params, optimizers, densify.state, views.viewmats,
+                                                        views.Ks, views.masks, cfg.mask_prune_views)
         history.append(record)
-        if step % 10 == 0 or step == cfg.iterations:
-            bar.set_postfix(loss=f"{record['loss']:.4f}", n=len(gaussians))
+        progress("object", step, cfg.iterations)
     return TrainResult(gaussians, history, scene_scale)

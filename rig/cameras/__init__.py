@@ -1,15 +1,28 @@
-"""One Camera protocol, one module per backend (sim, v4l2, aravis).
+"""One Camera protocol, and what a backend (sim, v4l2, aravis, a test's fake) provides behind it.
 
 A backend hands out frames as they came from the device: MJPEG bytes where the camera encodes
 (UVC, the simulated cube), raw pixels otherwise, each with the device's sequence number and
 timestamp and the host's receive time. The recorder never decodes.
+
+A backend is a `Backend` record: how it opens its cameras for a take, how it finds the devices
+plugged in (`rig list`), and, for the simulator, the clock a take runs on. rig.backends lists
+them by name; the recorder and discovery ask that registry and never branch on a backend.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
 from manus_core.errors import CameraDisconnected, CameraError
+from manus_core.rig_config import CameraConfig, RigConfig
+
+from ..clock import Clock
+
+__all__ = ["Backend", "Camera", "CameraDisconnected", "CameraError", "CameraInfo", "FoundCamera", "Frame",
+           "TakeCameras", "TakeSetup"]
 
 
 @dataclass(frozen=True)
@@ -55,3 +68,55 @@ class Camera(Protocol):
     def close(self) -> None: ...
 
     def info(self) -> CameraInfo: ...
+
+
+@dataclass(frozen=True)
+class FoundCamera:
+    """A camera plugged into this machine, as `rig list` shows it."""
+
+    backend: str          # v4l2 | aravis
+    device: str           # what rig.toml's `device` takes: a /dev/v4l/by-id path, an Aravis id
+    model: str = ""
+    vendor: str = ""
+    serial: str = ""
+    address: str = ""     # /dev/videoN, IP address, USB bus id
+    protocol: str = ""    # UVC, GigEVision, USB3Vision, Fake
+
+
+@dataclass(frozen=True)
+class TakeSetup:
+    """What a backend is told when it opens its cameras for one take."""
+
+    rig: RigConfig
+    cameras: tuple[CameraConfig, ...]   # the cameras to open (a backend gets its own), in rig.toml order
+    kind: str
+    duration_s: float
+    clock: Clock                        # the take's clock
+    take_dir: Path
+    # the LED panels' mean level (0..1) at a take-clock time, where the controller is simulated
+    lighting: Callable[[int], float] | None = None
+    label_frames: Sequence[int] | None = None   # frames the simulator renders labels of
+
+
+@dataclass(frozen=True)
+class TakeCameras:
+    """A backend's cameras for one take (not opened yet: the recorder opens them)."""
+
+    cameras: Mapping[str, Camera]
+    t0_ns: int | None = None            # tick 0 on the take's clock; None: the recorder sets it
+    note: str = ""                      # take.json's backend_note
+    # runs after the cameras are closed; returns extra take.json fields (the simulator's ground truth)
+    finish: Callable[[], dict[str, Any]] | None = None
+
+
+@dataclass(frozen=True)
+class Backend:
+    """One camera backend, registered by name in rig.backends."""
+
+    name: str
+    open: Callable[[TakeSetup], TakeCameras]
+    # the cameras plugged in (argument: also list fake devices); None: nothing to discover
+    discover: Callable[[bool], list[FoundCamera]] | None = None
+    # a backend that runs takes on a clock of its own (the simulator renders on a virtual one);
+    # None: the host's CLOCK_MONOTONIC, which every real camera's host times are on
+    clock: Callable[[RigConfig], Clock] | None = None

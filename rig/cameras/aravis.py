@@ -17,10 +17,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from manus_core.errors import CameraDisconnected, CameraError
 from manus_core.rig_config import CameraConfig
-from rig.discovery import FoundCamera
 
-from . import CameraDisconnected, CameraError, CameraInfo, Frame
+from . import Backend, CameraInfo, FoundCamera, Frame, TakeCameras, TakeSetup
 
 # GenICam PixelFormat names -> Frame.encoding
 ENCODINGS = {"Mono8": "mono8", "Mono10": "mono10", "Mono12": "mono12", "Mono16": "mono16",
@@ -35,6 +35,8 @@ def aravis() -> Any:
     """The Aravis 0.8 namespace; CameraError (with what to install) when it is missing."""
     global _ARAVIS
     if _ARAVIS is None:
+        # PyGObject and Aravis are optional (the [aravis] extra and a system package): imported on
+        # first use, so that the other backends, discovery and the recorder work without them
         try:
             import gi
 
@@ -150,7 +152,7 @@ class AravisCamera:
 
     @contextmanager
     def _guard(self, what: str) -> Iterator[None]:
-        from gi.repository import GLib
+        from gi.repository import GLib  # optional, as in aravis(); loaded by then
 
         try:
             yield
@@ -286,7 +288,7 @@ class AravisCamera:
     def stats(self) -> dict[str, Any]:
         """Frames handed out, incomplete buffers, seq gaps, and Aravis's stream counters
         (n_missing_frames, n_underruns, n_missing_packets, n_resent_packets, ...)."""
-        from gi.repository import GObject
+        from gi.repository import GObject  # optional, as in aravis(); loaded by then
 
         out: dict[str, Any] = dict(self._counts)
         stream = self._stream
@@ -343,3 +345,10 @@ class AravisCamera:
         if self._cam is None:
             raise CameraError(f"camera {self.cfg.id}: not open")
         return self._cam
+
+
+def open_take(setup: TakeSetup) -> TakeCameras:
+    return TakeCameras({c.id: AravisCamera(c, sync=setup.rig.sync) for c in setup.cameras})
+
+
+BACKEND = Backend("aravis", open_take, discover=lambda fake: list_aravis_cameras(include_fake=fake))

@@ -14,19 +14,11 @@ from __future__ import annotations
 
 from typing import Any
 
+from manus_core.errors import LedDisconnected, LedError, LedRejected, LedTimeout, LedValueError
 from manus_core.rig_config import LedConfig
 
 from .ascii import AsciiLedController
-from .base import (
-    Backoff,
-    LedController,
-    LedDisconnected,
-    LedError,
-    LedRejected,
-    LedTimeout,
-    LedValueError,
-    now_ns,
-)
+from .base import Backoff, LedController, now_ns
 from .dmx import DmxLedController
 from .sim import SimulatedLedController
 
@@ -40,7 +32,7 @@ def open_led_controller(cfg: LedConfig, **options: Any) -> LedController:
 
     protocol "ascii" and "dmx" open `cfg.port`; "sim" starts a SimulatedLedController on a
     pseudo-terminal, talks to it through the same ASCII client, and exposes it as `.sim`
-    (closed with the controller). `options` go to the controller (timeout_s, retries, backoff).
+    (closed with the controller). `options` go to the controller (timeout_s, retries, backoff, opener).
     """
     if cfg.protocol == "dmx":
         return DmxLedController(cfg.port, cfg.panels, cfg.baudrate, cfg.level, **options)

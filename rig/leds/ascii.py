@@ -6,18 +6,11 @@ import threading
 import time
 from typing import Any
 
-from .base import (
-    DEFAULT_BACKOFF,
-    Backoff,
-    LedController,
-    LedRejected,
-    LedTimeout,
-    LedValueError,
-    LinkLost,
-    SerialLink,
-    check_level,
-    now_ns,
-)
+import serial
+
+from manus_core.errors import LedRejected, LedTimeout, LedValueError, LinkLost
+
+from .base import DEFAULT_BACKOFF, Backoff, LedController, Opener, SerialLink, check_level, now_ns
 from .protocol import SEQ_MAX, FrameParser, Reply, encode, from_wire, parse_reply, to_wire
 
 
@@ -34,11 +27,12 @@ class AsciiLedController(LedController):
     protocol = "ascii"
 
     def __init__(self, port: str, panels: int = 6, baudrate: int = 115200, level: float = 1.0, *,
-                 timeout_s: float = 0.25, retries: int = 3, backoff: Backoff = DEFAULT_BACKOFF) -> None:
+                 timeout_s: float = 0.25, retries: int = 3, backoff: Backoff = DEFAULT_BACKOFF,
+                 opener: Opener = serial.Serial) -> None:
         super().__init__(port, panels, level)
         self.timeout_s = timeout_s
         self.retries = retries
-        self._link = SerialLink(port, baudrate, backoff, self.log)
+        self._link = SerialLink(port, baudrate, backoff, self.log, opener)
         self._parser = FrameParser()
         self._seq = 0
         self._lock = threading.RLock()

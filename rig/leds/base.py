@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import serial
-from manus_core.errors import LedDisconnected, LedError, LedRejected, LedTimeout, LedValueError, LinkLost
+
+from manus_core.errors import LedDisconnected, LedError, LedValueError, LinkLost
 
 
 def now_ns() -> int:
@@ -32,6 +33,10 @@ class Backoff:
 
 
 DEFAULT_BACKOFF = Backoff()
+
+# How a port is opened: pyserial's constructor, or a wrapper that sees every (re)open attempt,
+# with which a test plugs a simulated device back in at a chosen attempt rather than after a delay.
+Opener = Callable[..., serial.Serial]
 
 
 class CommandLog:
@@ -62,7 +67,7 @@ class SerialLink:
     """
 
     def __init__(self, port: str, baudrate: int, backoff: Backoff, log: CommandLog,
-                 opener: Callable[..., serial.Serial] = serial.Serial) -> None:
+                 opener: Opener = serial.Serial) -> None:
         self.port = port
         self.baudrate = baudrate
         self.backoff = backoff

@@ -14,18 +14,11 @@ import threading
 import time
 from typing import Any
 
-from .base import (
-    DEFAULT_BACKOFF,
-    Backoff,
-    LedController,
-    LedError,
-    LedTimeout,
-    LedValueError,
-    LinkLost,
-    SerialLink,
-    check_level,
-    now_ns,
-)
+import serial
+
+from manus_core.errors import LedError, LedTimeout, LedValueError, LinkLost
+
+from .base import DEFAULT_BACKOFF, Backoff, LedController, Opener, SerialLink, check_level, now_ns
 
 SOM = 0x7E                     # start of message
 EOM = 0xE7                     # end of message
@@ -114,7 +107,8 @@ class DmxLedController(LedController):
 
     def __init__(self, port: str, panels: int = 6, baudrate: int = 57600, level: float = 1.0, *,
                  start_channel: int = 1, slots: int | None = None, timeout_s: float = 0.25,
-                 retries: int = 3, backoff: Backoff = DEFAULT_BACKOFF) -> None:
+                 retries: int = 3, backoff: Backoff = DEFAULT_BACKOFF,
+                 opener: Opener = serial.Serial) -> None:
         super().__init__(port, panels, level)
         self.slots = max(MIN_SLOTS, panels + start_channel - 1) if slots is None else slots
         if not start_channel >= 1 or start_channel + panels - 1 > min(self.slots, MAX_SLOTS):
@@ -123,7 +117,7 @@ class DmxLedController(LedController):
         self.start_channel = start_channel
         self.timeout_s = timeout_s
         self.retries = retries
-        self._link = SerialLink(port, baudrate, backoff, self.log)
+        self._link = SerialLink(port, baudrate, backoff, self.log, opener)
         self._parser = EnttecParser()
         self._lock = threading.RLock()
         self._flash_until_ns = 0

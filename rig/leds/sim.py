@@ -140,6 +140,12 @@ class SimulatedLedController:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         return np.concatenate(ids), np.concatenate(times)
 
+    def flashes(self) -> list[tuple[int, int, float]]:
+        """(host t_start_ns, t_end_ns, level) of every flash, as the controller's clock timed it
+        (a flash cut short by the next one, an unplug or a reboot ends there)."""
+        with self._lock:
+            return [(start, end, level) for start, end, level in self._flashes]
+
     def executed(self) -> list[tuple[int, str]]:
         """(seq, verb) of every command executed (not those answered from the dedupe cache)."""
         with self._lock:

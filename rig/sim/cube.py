@@ -16,10 +16,15 @@ import cv2
 import numpy as np
 
 from manus_core.cameras import CameraRig
-
-from ..cameras import CameraError, CameraInfo, Frame
-from ..clock import VirtualClock
+from manus_core.errors import CameraError
 from manus_core.rig_config import CameraConfig, RigConfig
+from rig.sim.ground_truth import write_ground_truth
+from rig.sim.hand import make_hand
+from rig.sim.motion import make_motion
+from rig.sim.objects import make_object
+
+from ..cameras import CameraInfo, Frame
+from ..clock import VirtualClock
 from .clocks import CameraClock
 from .render import Rendered, Renderer
 from .world import World
@@ -61,10 +66,6 @@ class SimulatedCube:
 
     def __init__(self, config: RigConfig, kind: str, duration_s: float = 2.0,
                  clock: VirtualClock | None = None, lighting: Callable[[int], float] | None = None) -> None:
-        from .hand import make_hand
-        from .motion import make_motion
-        from .objects import make_object
-
         sim = config.sim
         self.config = config
         self.kind = kind
@@ -120,7 +121,6 @@ class SimulatedCube:
             self.records[cam].append((tick, exposure_ns, dropped))
 
     def write_ground_truth(self, path, label_frames=None) -> None:
-        from .ground_truth import write_ground_truth
         write_ground_truth(self, path, label_frames)
 
 

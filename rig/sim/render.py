@@ -18,11 +18,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from manus_core.cameras import CameraRig
+from manus_core.ground_truth import LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL_WALLS
 
 from . import shapes
 from .world import MIP_LEVELS, World
 
-LABEL_BACKGROUND, LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL_WALLS = 0, 1, 2, 3, 4
 PAINT_BGR = np.array([0.2, 0.78, 0.12], np.float32)  # the green residue left on the hand
 AMBIENT = 0.25  # room light when the LEDs are off, as a fraction of full LED light
 

@@ -16,6 +16,8 @@ from functools import cached_property
 import cv2
 import numpy as np
 
+from manus_core.fileio import write_atomic
+
 TAG_CELLS = 8          # a 36h11 tag is 6x6 data cells inside a one-cell black border
 MIP_LEVELS = 6         # level 5 is a 32x reduction: enough for 320x180 views of the far wall
 
@@ -143,7 +145,6 @@ class World:
                 "tags": {str(i): c.round(9).tolist() for i, c in self.tags.items()}}
 
     def write_tags(self, path) -> None:
-        from manus_core.fileio import write_atomic
         write_atomic(path, json.dumps(self.tags_json(), indent=1).encode())
 
     @cached_property

@@ -1,0 +1,24 @@
+"""Recording takes (stage 1): every camera of a rig into one take folder.
+
+    from rig.record import RecordOptions, record_take
+    result = record_take(rig, "s01", "grasp1", "grasp", 5.0, RecordOptions(flash_ms=50))
+
+record_take (rig.record.take) checks the take, opens the cameras through their backends and
+keeps session.toml; Recorder (rig.record.recorder) records any Camera objects on one clock;
+its pieces: streams (reader and writer threads, frames.csv), jpeg (frames as stored),
+led_plan (LED commands on the take's clock), disk (space checks), stop (why a take ends),
+report (what it delivered).
+"""
+
+from __future__ import annotations
+
+from .jpeg import FLAG_HOST_JPEG
+from .led_plan import flash_offsets
+from .options import RecordOptions
+from .recorder import Recorder
+from .report import CameraReport, TakeResult
+from .stop import StopFlag
+from .take import record_take
+
+__all__ = ["FLAG_HOST_JPEG", "CameraReport", "RecordOptions", "Recorder", "StopFlag", "TakeResult", "flash_offsets",
+           "record_take"]

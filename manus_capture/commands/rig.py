@@ -12,6 +12,8 @@ from manus_core.fileio import write_atomic
 from manus_core.rig_config import BACKENDS, SYNC_MODES, load_rig, rig_to_toml
 from rig.layouts import LAYOUTS, make_rig
 
+from .rig_list import list_command
+
 
 def _resolution(ctx, param, value: str) -> tuple[int, int]:
     m = re.fullmatch(r"(\d+)x(\d+)", value)
@@ -72,10 +74,4 @@ def check(rig_file: Path) -> None:
     click.echo("ok")
 
 
-try:
-    from .rig_list import list_command
-except ModuleNotFoundError as exc:
-    if exc.name != f"{__package__}.rig_list":
-        raise
-else:
-    command.add_command(list_command)
+command.add_command(list_command)

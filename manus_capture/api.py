@@ -5,13 +5,15 @@
     rig = api.make_rig("cube53", cameras=12, resolution=(320, 180), sync="software-trigger")
     taken = api.record_take(rig, "s01", "calib", "calibration", 1.0)             # -> TakeResult
     report = api.sync_take("s01/calib")                                           # sync_report.json
-    calib = api.calibrate_rig(take="s01/calib", output="calib")                   # -> RigCalibration
+    calib = api.calibrate_rig(take="s01/calib", tags="s01/tags.json", intrinsics="lenses.json",
+                              output="calib")                                     # -> RigCalibration
+    cams = api.load_cameras("calib")                                              # -> CameraRig
     done = api.annotate(["s01/grasp"], "calib", "DATASET.h5")                     # -> AnnotateSummary
-    masks = api.segment_take("s01/grasp", api.load_cameras("calib"), "s01/calib")  # -> Segmentation
-    inputs = api.ModelInputs.prepare(rig, "DATASET.h5", hand_take, object_take, background_take)
-    models = inputs.train(cameras)                                                # -> TrainedModels
+    masks = api.segment_take("s01/grasp", cams, "s01/calib")                      # -> Segmentation
+    inputs = api.ModelInputs.prepare(cams, "DATASET.h5", "s01/hand", "s01/object", "s01/calib")
+    models = inputs.train(range(len(cams)))                                       # -> TrainedModels
     maps = api.model_contacts(models.hand, angles, models.object)                 # -> ContactMaps
-    scores, _ = api.score_contacts(models.hand, pose, maps.accumulated, rig, paint, views)  # -> Scores
+    scores, _ = api.score_contacts(models.hand, pose, maps.accumulated, cams, paint, views)  # -> Scores
 
 Long functions take `progress=` (a `Progress`: progress(stage, done, total)); every error they
 raise on purpose is a `ManusError` whose `exit_code` the CLI uses. docs/architecture.md says

@@ -35,8 +35,6 @@ import numpy as np
 from manus_core.cameras import CameraRig
 from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version
 from manus_core.errors import AnnotateError, BoneLengthError
-from manus_core.ground_truth import FILE_NAME as GROUND_TRUTH
-from manus_core.ground_truth import GroundTruth
 from manus_core.progress import Progress, silent
 from manus_core.session import load_session
 from manus_core.skeleton import HandSkeleton
@@ -55,7 +53,7 @@ from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
 from .keypoints import hand_keypoint_detector
 from .keypoints.keypoints2d import TakeKeypoints, detect_take, read_keypoints_h5, write_keypoints_h5
 from .one_euro import one_euro
-from .simulated_detector import SimulatedDetector, keypoints_for_take, true_rig
+from .simulated_detector import SimulatedDetector, simulated_take_keypoints
 from .sync import frame_groups
 from .triangulation import triangulate_frames
 
@@ -65,8 +63,8 @@ Groups = tuple[np.ndarray, np.ndarray]  # frame_ns (T,), frame_index (T,C)
 @dataclass(frozen=True)
 class AnnotateOptions:
     """Settings of the stage. keypoints: where 2D keypoints come from: "auto" (TAKE/keypoints2d.h5
-    when it exists, else the simulated detector when TAKE/ground_truth.h5 exists, else the ONNX
-    detector), "file", "simulated" or "detect"."""
+    when it exists, else the ONNX detector), "file", "detect", or "simulated": the simulated
+    detector on a simulated take's ground truth, an ablation that is only ever used when named."""
 
     keypoints: str = "auto"
     model: str = "mediapipe-hand"
@@ -182,19 +180,13 @@ def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOpti
 
 
 def _keypoints_simulated(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
-    gt = GroundTruth.of_take(take.path)
-    host = np.full(frame_index.shape, np.nan)
-    for c, cam in enumerate(take.cameras):
-        t_host = take.camera_frames(cam)["t_host_ns"]
-        ok = frame_index[:, c] >= 0
-        host[ok, c] = t_host[frame_index[ok, c]]
     # Each take gets its own noise: the same seed on two takes would repeat the same faults.
     seed = options.sim_seed ^ zlib.crc32(take.path.name.encode())
     det = SimulatedDetector(options.sim_noise_px, options.sim_outlier_rate, dropout_rate=options.sim_dropout_rate,
                             seed=seed)
-    kp = keypoints_for_take(gt, true_rig(gt, take.cameras), host, det)
-    return kp, (f"simulated:noise_px={options.sim_noise_px},outlier_rate={options.sim_outlier_rate},"
-                f"dropout_rate={options.sim_dropout_rate},seed={seed}")
+    return simulated_take_keypoints(take, frame_index, det), (
+        f"simulated:noise_px={options.sim_noise_px},outlier_rate={options.sim_outlier_rate},"
+        f"dropout_rate={options.sim_dropout_rate},seed={seed}")
 
 
 def take_keypoints(take: Take, frame_index: np.ndarray,
@@ -202,16 +194,12 @@ def take_keypoints(take: Take, frame_index: np.ndarray,
     """Keypoints (T,C,21,3) of the take's frame groups and a description of where they came from."""
     mode = options.keypoints
     if mode == "auto":
-        mode = "file" if (take.path / "keypoints2d.h5").exists() else (
-            "simulated" if (take.path / GROUND_TRUTH).exists() else "detect")
+        mode = "file" if (take.path / "keypoints2d.h5").exists() else "detect"
     if mode == "file":
         if not (take.path / "keypoints2d.h5").exists():
             raise AnnotateError(f"{take.path / 'keypoints2d.h5'}: missing (run `manus-capture detect {take.path}`)")
         return _keypoints_file(take, frame_index)
     if mode == "simulated":
-        if not (take.path / GROUND_TRUTH).exists():
-            raise AnnotateError(f"{take.path / GROUND_TRUTH}: missing; the simulated detector needs the "
-                                f"ground truth of a simulated take")
         return _keypoints_simulated(take, frame_index, options)
     return _keypoints_detect(take, frame_index, options)
 

@@ -36,6 +36,7 @@ from manus_core.cameras import CameraRig
 from manus_core.errors import SimulatedDetectorError
 from manus_core.ground_truth import LABEL_BACKGROUND, LABEL_OBJECT, LABEL_WALLS, GroundTruth
 from manus_core.skeleton import BONES
+from manus_core.take import Take
 
 # Radius (m) of the flesh around each bone for self-occlusion: the thumb's metacarpal (thenar) and
 # the phalanges; the other metacarpals are inside the palm triangles.
@@ -316,3 +317,17 @@ def keypoints_for_take(gt: GroundTruth, rig: CameraRig, host_ns: np.ndarray,
     kp = detector.detect(rig, joints, labels=labels)
     kp[~np.isfinite(exposure)] = (np.nan, np.nan, 0.0)
     return kp
+
+
+def simulated_take_keypoints(take: Take, frame_index: np.ndarray, detector: SimulatedDetector) -> np.ndarray:
+    """Keypoints (T,C,21,3) of a recorded simulated take's frame groups (frame_index (T,C), -1: none).
+
+    The `--keypoints simulated` ablation: it reads the take's ground truth, so annotate uses it only
+    when asked for by name, never by default.
+    """
+    gt = GroundTruth.of_take(take.path)  # names the file when the take has no ground truth
+    host = np.full(frame_index.shape, np.nan)
+    for c, cam in enumerate(take.cameras):
+        ok = frame_index[:, c] >= 0
+        host[ok, c] = take.camera_frames(cam)["t_host_ns"][frame_index[ok, c]]
+    return keypoints_for_take(gt, true_rig(gt, take.cameras), host, detector)

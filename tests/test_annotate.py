@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import h5py
@@ -16,7 +17,7 @@ import dataset_tools.annotate as annotate_module
 from dataset_tools.annotate import AnnotateOptions, annotate, annotate_arrays
 from dataset_tools.hand.bones import estimate_bone_lengths, load_subject
 from dataset_tools.keypoints.keypoints2d import CameraKeypoints, TakeKeypoints, write_keypoints_h5
-from dataset_tools.simulated_detector import SimulatedDetector
+from dataset_tools.simulated_detector import SimulatedDetector, simulated_take_keypoints
 from dataset_tools.sync import frame_groups
 from dataset_tools.triangulation import triangulate_frames
 from manus_capture.cli import cli
@@ -33,6 +34,9 @@ from rig.sim.cube import true_cameras
 from rig.sim.hand import make_hand
 from rig.sim.motion import make_motion
 from rig.sim.objects import make_object
+
+# The keypoints of these takes: the simulated detector on their ground truth, named as the ablation it is
+SIMULATED = AnnotateOptions(keypoints="simulated")
 
 
 def rotation_errors(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -132,7 +136,7 @@ def dataset_arrays(path: Path) -> dict[str, dict[str, np.ndarray]]:
 @pytest.fixture(scope="module")
 def inline_result(session, tmp_path_factory):
     out = tmp_path_factory.mktemp("inline") / "DATASET.h5"
-    summary = annotate(session["takes"], session["root"] / "calib", out)
+    summary = annotate(session["takes"], session["root"] / "calib", out, SIMULATED)
     return out, summary
 
 
@@ -167,10 +171,10 @@ def test_dask_and_the_process_pool_give_the_inline_result(session, inline_result
     reference = dataset_arrays(inline_result[0])
     bones = session["root"] / "S1" / "subjects" / "s03.json"      # written by the inline run
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
-        summary = annotate(session["takes"], session["root"] / "calib", tmp_path / "dask.h5",
+        summary = annotate(session["takes"], session["root"] / "calib", tmp_path / "dask.h5", SIMULATED,
                            scheduler=cluster.scheduler_address)
     assert sorted(summary.annotated) == ["S1/grasp_01", "S1/hand_01"] and summary.subjects["S1"] == str(bones)
-    pooled = annotate(session["takes"], session["root"] / "calib", tmp_path / "pool.h5", workers=2)
+    pooled = annotate(session["takes"], session["root"] / "calib", tmp_path / "pool.h5", SIMULATED, workers=2)
     assert not pooled.failed
     for path in (tmp_path / "dask.h5", tmp_path / "pool.h5"):
         other = dataset_arrays(path)
@@ -194,7 +198,7 @@ def test_an_interrupted_run_resumes_with_the_takes_it_had_not_finished(session, 
 
     monkeypatch.setattr(annotate_module, "annotate_take", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        annotate(session["takes"], session["root"] / "calib", out)
+        annotate(session["takes"], session["root"] / "calib", out, SIMULATED)
     assert not out.exists() and calls == ["S1/hand_01"]
     assert len(list((tmp_path / ".DATASET.h5.parts").glob("*.h5"))) == 1
 
@@ -203,7 +207,7 @@ def test_an_interrupted_run_resumes_with_the_takes_it_had_not_finished(session, 
         return real(task)
 
     monkeypatch.setattr(annotate_module, "annotate_take", counting)
-    summary = annotate(session["takes"], session["root"] / "calib", out)
+    summary = annotate(session["takes"], session["root"] / "calib", out, SIMULATED)
     assert calls == ["S1/hand_01", "S1/grasp_01"]          # the hand take was not done again
     assert summary.resumed == ["S1/hand_01"] and summary.annotated == ["S1/grasp_01"]
     reference, resumed = dataset_arrays(inline_result[0]), dataset_arrays(out)
@@ -211,7 +215,7 @@ def test_an_interrupted_run_resumes_with_the_takes_it_had_not_finished(session, 
         for name, value in reference[key].items():
             np.testing.assert_array_equal(resumed[key][name], value)
     # A third run has nothing left to do.
-    again = annotate(session["takes"], session["root"] / "calib", out)
+    again = annotate(session["takes"], session["root"] / "calib", out, SIMULATED)
     assert again.annotated == [] and sorted(again.resumed) == ["S1/grasp_01", "S1/hand_01"]
 
 
@@ -277,7 +281,17 @@ def test_bad_input_gives_clear_errors_or_marked_frames(session, inline_result, t
     nothing = {cam: CameraKeypoints(np.full((18, 21, 3), np.nan, np.float32), np.zeros((18, 4), np.float32),
                                     np.zeros(18, np.float32)) for cam in rig.ids}
     write_keypoints_h5(empty / "keypoints2d.h5", TakeKeypoints(nothing, "none", "-", "test"))
-    result = CliRunner().invoke(cli, ["annotate", str(empty), str(session["takes"][1]), "--calib", str(root / "calib"),
+    # the good take beside it, with its keypoints in a file too (the simulated detector's, per camera frame)
+    good = tmp_path / "S1" / "grasp_01"
+    shutil.copytree(session["takes"][1], good)
+    counts = np.array([Take(good).frame_count(cam) for cam in rig.ids])
+    rows = np.arange(counts.max())[:, None]
+    per_frame = np.where(rows < counts, rows, -1)                   # row k: each camera's k-th frame
+    kp = simulated_take_keypoints(Take(good), per_frame, SimulatedDetector(seed=2)).astype(np.float32)
+    write_keypoints_h5(good / "keypoints2d.h5", TakeKeypoints(
+        {cam: CameraKeypoints(kp[:n, c], np.zeros((n, 4), np.float32), np.zeros(n, np.float32))
+         for c, (cam, n) in enumerate(zip(rig.ids, counts))}, "simulated", "-", "test"))
+    result = CliRunner().invoke(cli, ["annotate", str(empty), str(good), "--calib", str(root / "calib"),
                                       "-o", str(tmp_path / "E.h5"), "--bones", str(root / "S1" / "subjects" / "s03.json")])
     assert result.exit_code == 2, result.output
     assert "no joint could be triangulated in any of the 18 frames" in result.output
@@ -298,7 +312,7 @@ def test_cli_annotate_then_stats(session, tmp_path):
     out = tmp_path / "D.h5"
     runner = CliRunner()
     result = runner.invoke(cli, ["annotate", *map(str, session["takes"]), "--calib", str(session["root"] / "calib"),
-                                 "-o", str(out), "--workers", "1"])
+                                 "-o", str(out), "--workers", "1", "--keypoints", "simulated"])
     assert result.exit_code == 0, result.output
     assert "2 takes annotated, 0 kept from before, 0 failed; 120 frames, hand fitted in 120" in result.output
     result = runner.invoke(cli, ["stats", str(out), "--json", str(tmp_path / "stats.json")])
@@ -333,7 +347,7 @@ def test_recorded_sim_take_end_to_end(tmp_path):
     true_cameras(load_rig(rig_file)).save(tmp_path / "cameras.json")
     out = tmp_path / "D.h5"
     result = runner.invoke(cli, ["annotate", str(take), "--calib", str(tmp_path / "cameras.json"),
-                                 "-o", str(out)])
+                                 "-o", str(out), "--keypoints", "simulated"])
     assert result.exit_code == 0, result.output
     gt = GroundTruth.of_take(take)
     ann = read_dataset(out)["S/g"]

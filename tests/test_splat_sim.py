@@ -252,7 +252,7 @@ def test_reconstruct_hand_command_from_annotate(small_hand_take, tmp_path):
     truth_cameras(small_hand_take).save(tmp_path / "cameras.json")
     runner = CliRunner()
     result = runner.invoke(cli, ["annotate", str(small_hand_take), "--calib", str(tmp_path / "cameras.json"),
-                                 "-o", str(tmp_path / "D.h5")])
+                                 "-o", str(tmp_path / "D.h5"), "--keypoints", "simulated"])
     assert result.exit_code == 0, result.output
     ds = read_dataset(tmp_path / "D.h5")
     ann = ds[ds.takes[0]]

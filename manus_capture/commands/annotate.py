@@ -19,8 +19,9 @@ from manus_core.errors import AnnotateError
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="DATASET.h5 to write.")
 @click.option("--keypoints", type=click.Choice(["auto", "file", "simulated", "detect"]), default="auto",
               show_default=True,
-              help="2D keypoints: TAKE/keypoints2d.h5 (file), the simulated detector on ground_truth.h5 "
-                   "(simulated), the ONNX detector (detect); auto picks the first that the take has.")
+              help="2D keypoints: TAKE/keypoints2d.h5 (file), the ONNX detector (detect); auto takes the file "
+                   "when the take has one, else detects. 'simulated' is an ablation on a simulated take: its "
+                   "ground truth's joints with simulated detector noise, never chosen by auto.")
 @click.option("--model", default="mediapipe-hand", show_default=True,
               help="Keypoint model for --keypoints detect (or auto without keypoints2d.h5).")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,

@@ -130,3 +130,37 @@ def test_modules_stay_small():
 def test_the_checker_finds_a_cycle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert not _cycles({"a": {"b"}, "b": set()})
+
+
+def test_each_file_format_is_named_by_its_own_module():
+    """frames.csv and ground_truth.h5 are opened through one module each (the names appear as code,
+    not prose, nowhere else): no stage reads either by raw keys of its own."""
+    owners = {"frames.csv": "manus_core.frames_csv", "ground_truth.h5": "manus_core.ground_truth"}
+    found = []
+    for name, path in _modules().items():
+        tree = ast.parse(path.read_text())
+        docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                      if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                      and node.body and isinstance(node.body[0], ast.Expr)}
+        found += [(node.value, name) for node in ast.walk(tree) if isinstance(node, ast.Constant)
+                  and node.value in owners and id(node) not in docstrings and owners[node.value] != name]
+    assert not found, found
+
+
+def test_only_the_cli_draws_bars_and_only_errors_defines_errors():
+    """One progress protocol (library code never imports tqdm; manus_capture.bars draws) and one
+    errors module (every exception class of the project lives in manus_core.errors)."""
+    bars, errors = [], []
+    for name, path in _modules().items():
+        tree = ast.parse(path.read_text())
+        imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import)
+                    for alias in node.names}
+        imported |= {(node.module or "").split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+        if "tqdm" in imported and name != "manus_capture.bars":
+            bars.append(name)
+        if name != "manus_core.errors":
+            errors += [f"{name}.{node.name}" for node in ast.walk(tree) if isinstance(node, ast.ClassDef)
+                       and any(isinstance(b, ast.Name) and (b.id.endswith(("Error", "Exception")) or b.id == "ManusError")
+                               for b in node.bases)]
+    assert not bars, f"library code drawing bars: {bars}"
+    assert not errors, f"error classes outside manus_core.errors: {errors}"

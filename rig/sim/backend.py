@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from manus_core.ground_truth import FILE_NAME as TRUTH_FILE
 from manus_core.rig_config import RigConfig
 
 from ..cameras import Backend, TakeCameras, TakeSetup
@@ -24,9 +25,9 @@ def open_take(setup: TakeSetup) -> TakeCameras:
     def finish() -> dict[str, Any]:
         out: dict[str, Any] = {"ground_truth": None}
         try:
-            cube.write_ground_truth(setup.take_dir / "ground_truth.h5", setup.label_frames)
+            cube.write_ground_truth(setup.take_dir / TRUTH_FILE, setup.label_frames)
             cube.world.write_tags(setup.take_dir.parent / "tags.json")
-            out["ground_truth"] = "ground_truth.h5"
+            out["ground_truth"] = TRUTH_FILE
         except OSError as exc:
             out["ground_truth_error"] = str(exc)
         return out

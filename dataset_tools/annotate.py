@@ -18,12 +18,15 @@ Bone lengths, per session (the take folder's parent), first match wins:
    subject;
 4. the take itself.
 Every take records where its bones came from (attribute bone_source).
+
+A take already in the output (or saved by an interrupted run) is kept only when all its inputs
+(annotate_inputs: frames, calibration, cameras, keypoints, frame groups, bones, settings) are the
+same now; otherwise it is redone and the summary says why. Uncalibrated cameras are left out.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
-import hashlib
 import multiprocessing
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -36,25 +39,19 @@ from manus_core.cameras import CameraRig
 from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version
 from manus_core.errors import AnnotateError, BoneLengthError
 from manus_core.progress import Progress, silent
+from manus_core.provenance import array_sha256, cameras_used, differences, file_sha256, provenance_attrs, stage_inputs
 from manus_core.session import load_session
 from manus_core.skeleton import HandSkeleton
 from manus_core.take import Take
 
 from .calibration.formats import load_cameras
-from .hand.bones import (
-    BoneLengths,
-    bone_lengths_from_samples,
-    bone_samples,
-    estimate_bone_lengths,
-    load_subject,
-    save_subject,
-)
+from .hand.bones import bone_lengths_from_samples, bone_samples, estimate_bone_lengths, load_subject, save_subject
 from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
 from .keypoints import hand_keypoint_detector
 from .keypoints.keypoints2d import TakeKeypoints, detect_take, read_keypoints_h5, write_keypoints_h5
 from .one_euro import one_euro
 from .simulated_detector import SimulatedDetector, simulated_take_keypoints
-from .sync import frame_groups
+from .sync import GROUPS_FILE, frame_groups
 from .triangulation import triangulate_frames
 
 Groups = tuple[np.ndarray, np.ndarray]  # frame_ns (T,), frame_index (T,C)
@@ -90,6 +87,12 @@ class AnnotateOptions:
     def filter(self) -> dict:
         return {"min_cutoff": self.min_cutoff, "beta": self.beta, "beta_translation": self.beta_translation,
                 "d_cutoff": self.d_cutoff}
+
+    @property
+    def settings(self) -> dict:
+        """The settings the results depend on, besides the keypoint source."""
+        return {"threshold_px": self.threshold_px, "min_views": self.min_views, "min_joints": self.min_joints,
+                "ik_poor_m": self.ik_poor_m, **self.filter}
 
 
 # --- the numeric core ------------------------------------------------------------------------------
@@ -189,12 +192,17 @@ def _keypoints_simulated(take: Take, frame_index: np.ndarray, options: AnnotateO
         f"dropout_rate={options.sim_dropout_rate},seed={seed}")
 
 
+def keypoint_mode(take: Take, options: AnnotateOptions) -> str:
+    """file, detect or simulated: what options.keypoints means for this take."""
+    if options.keypoints == "auto":
+        return "file" if (take.path / "keypoints2d.h5").exists() else "detect"
+    return options.keypoints
+
+
 def take_keypoints(take: Take, frame_index: np.ndarray,
                    options: AnnotateOptions = AnnotateOptions()) -> tuple[np.ndarray, str]:
     """Keypoints (T,C,21,3) of the take's frame groups and a description of where they came from."""
-    mode = options.keypoints
-    if mode == "auto":
-        mode = "file" if (take.path / "keypoints2d.h5").exists() else "detect"
+    mode = keypoint_mode(take, options)
     if mode == "file":
         if not (take.path / "keypoints2d.h5").exists():
             raise AnnotateError(f"{take.path / 'keypoints2d.h5'}: missing (run `manus-capture detect {take.path}`)")
@@ -215,6 +223,8 @@ class TakeTask:
     rig: CameraRig
     options: AnnotateOptions
     calibration: dict
+    cameras: tuple[str, ...]
+    inputs: dict
     bones: np.ndarray | None = None
     bone_source: str = "take"
     groups: Groups | None = None
@@ -232,7 +242,8 @@ def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, 
         groups = frame_groups(take)
         frame_ns, frame_index, grouping = groups.frame_ns, groups.frame_index, groups.description
     kp, source = take_keypoints(take, frame_index, task.options)
-    return take, frame_ns, frame_index, kp, source, grouping
+    used = [take.cameras.index(c) for c in task.cameras]
+    return take, frame_ns, frame_index[:, used], kp[:, used], source, grouping
 
 
 def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float]:
@@ -256,15 +267,23 @@ def annotate_take(task: TakeTask) -> TakeAnnotation:
              "skeleton": skeleton_description(HandSkeleton(result["bone_lengths"])),
              "software": software_version(), "keypoint_source": source,
              "bone_source": task.bone_source if task.bones is not None else "take", "filter": task.options.filter,
-             "frame_groups": grouping,
-             **task.calibration}
-    return TakeAnnotation(task.key, take.cameras, frame_ns, frame_index, kp.astype(np.float32),
+             "frame_groups": grouping, "cameras_left_out": [c for c in take.cameras if c not in task.cameras],
+             **task.calibration, **provenance_attrs("annotate", task.inputs)}
+    return TakeAnnotation(task.key, task.cameras, frame_ns, frame_index, kp.astype(np.float32),
                           result["keypoints3d"], result["keypoints3d_error_px"], result["keypoints3d_views"],
                           result["joint_angles_raw"], result["joint_angles"], result["bone_lengths"],
                           result["ik_residual_m"], flags, attrs)
 
 
 # --- running many takes ----------------------------------------------------------------------------
+
+def _outcomes(futures: dict, finished: Iterable) -> Iterator[tuple[TakeTask, object]]:
+    for fut in finished:
+        try:
+            yield futures[fut], fut.result()
+        except Exception as exc:  # a failed take is reported, the others go on
+            yield futures[fut], exc
+
 
 def _run(fn: Callable, tasks: list[TakeTask], workers: int, scheduler: str | None) -> Iterator[tuple[TakeTask, object]]:
     """(task, result or exception) as tasks finish: inline, process pool or Dask."""
@@ -276,21 +295,13 @@ def _run(fn: Callable, tasks: list[TakeTask], workers: int, scheduler: str | Non
 
         with Client(scheduler) as client:
             futures = {client.submit(fn, t, pure=False, key=f"annotate-{fn.__name__}-{t.key}"): t for t in tasks}
-            for fut in as_completed(futures):
-                try:
-                    yield futures[fut], fut.result()
-                except Exception as exc:  # a failed take is reported, the others go on
-                    yield futures[fut], exc
+            yield from _outcomes(futures, as_completed(futures))
         return
     if workers > 1:
         ctx = multiprocessing.get_context("forkserver")
         with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             futures = {pool.submit(fn, t): t for t in tasks}
-            for fut in cf.as_completed(futures):
-                try:
-                    yield futures[fut], fut.result()
-                except Exception as exc:
-                    yield futures[fut], exc
+            yield from _outcomes(futures, cf.as_completed(futures))
         return
     for t in tasks:
         try:
@@ -312,20 +323,65 @@ def session_subject(session: Path) -> str | None:
     return (found.subject or None) if found is not None else None
 
 
+def _subject_file(session: Path) -> Path | None:
+    """SESSION/subjects/SUBJECT.json of the session's subject (None: it names none)."""
+    subject = session_subject(session)
+    return session / "subjects" / f"{subject}.json" if subject else None
+
+
 def _calibration(calib: Path) -> tuple[CameraRig, dict]:
     if not calib.exists():
         raise AnnotateError(f"{calib}: no such calibration (give the calibration folder or its cameras.json)")
     rig = load_cameras(calib)
     file = calib / "cameras.json" if calib.is_dir() else calib
-    digest = hashlib.sha256(file.read_bytes()).hexdigest() if file.is_file() else ""
-    return rig, {"calibration": str(calib), "calibration_sha256": digest}
+    return rig, {"calibration": str(calib), "calibration_sha256": file_sha256(file) if file.is_file() else ""}
+
+
+def _bones_input(take: Take, bones: str | Path | np.ndarray | None) -> dict:
+    """The bone lengths a take's annotation depends on, as known before the run: given, the
+    session's subject file (their lengths' hash), or "estimated" by the run itself."""
+    if bones is not None:
+        lengths = load_subject(bones).bone_lengths if isinstance(bones, (str, Path)) else bones
+        return {"bones": "given", "bones_sha256": array_sha256(np.asarray(lengths, np.float64))}
+    file = _subject_file(take.path.resolve().parent)
+    if file is None or not file.is_file():
+        return {"bones": "estimated"}
+    return {"bones": "subject file", "bones_sha256": array_sha256(load_subject(file).bone_lengths)}
+
+
+def annotate_inputs(take: Take, cameras: Sequence[str], calibration: dict, options: AnnotateOptions,
+                    bones: str | Path | np.ndarray | None = None, groups: Groups | None = None) -> dict:
+    """Everything a take's annotation is made from (manus_core.provenance): it is reused only
+    when these are the same."""
+    mode = keypoint_mode(take, options)
+    inputs: dict = {"cameras": list(cameras), "calibration_sha256": calibration["calibration_sha256"],
+                    "keypoint_source": mode, "settings": options.settings, **_bones_input(take, bones)}
+    if mode == "file" and (take.path / "keypoints2d.h5").is_file():
+        inputs["keypoints_file_sha256"] = file_sha256(take.path / "keypoints2d.h5")
+    elif mode == "detect":
+        inputs["keypoint_model"] = options.model
+    elif mode == "simulated":
+        inputs["keypoint_simulation"] = {"noise_px": options.sim_noise_px, "outlier_rate": options.sim_outlier_rate,
+                                         "dropout_rate": options.sim_dropout_rate, "seed": options.sim_seed}
+    if groups is not None:
+        inputs.update(frame_groups="given", frame_groups_sha256=array_sha256(*map(np.int64, groups)))
+    elif (take.path / GROUPS_FILE).is_file():
+        inputs.update(frame_groups="sync report", frame_groups_sha256=file_sha256(take.path / GROUPS_FILE))
+    else:
+        inputs["frame_groups"] = "computed"
+    return stage_inputs(take, **inputs)
 
 
 @dataclass
 class AnnotateSummary:
+    """`annotated`: takes computed now (`redone`: those replacing an earlier annotation, and why);
+    `resumed`: kept from before (all inputs the same); `left_out`: cameras per take not used."""
+
     output: Path
     annotated: list[str] = field(default_factory=list)
     resumed: list[str] = field(default_factory=list)
+    redone: dict[str, list[str]] = field(default_factory=dict)
+    left_out: dict[str, list[str]] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
     frames: int = 0
     frames_fitted: int = 0
@@ -336,46 +392,52 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
              options: AnnotateOptions = AnnotateOptions(), *, workers: int = 1, scheduler: str | None = None,
              force: bool = False, bones: str | Path | np.ndarray | None = None,
              groups: Mapping[str, Groups] | Callable[[Take], Groups] | None = None,
-             progress: Progress = silent) -> AnnotateSummary:
+             cameras: Sequence[str] | None = None, progress: Progress = silent) -> AnnotateSummary:
     """Annotate takes into DATASET.h5 (see the module doc). Returns what was done.
 
     groups: frame groups per take (a mapping from the take's path or key, or a function of the
     Take); takes without get the groups saved with their sync report, or the same grouping
-    computed now when they have none (dataset_tools.sync.frame_groups). progress("annotate", takes
-    done, takes) after each take, those kept from before first.
-    Takes that fail are listed in the summary's `failed`; the others are written.
+    computed now when they have none (dataset_tools.sync.frame_groups). cameras: the cameras to
+    use (default: every camera of a take that the calibration has). force: redo every take even
+    when its inputs are the same. progress("annotate", takes done, takes) after each take, those
+    kept from before first. Takes that fail are listed in the summary's `failed`; the others are
+    written. Other stages' results in the output (masks, paint, contacts) are never touched.
     """
     calib = Path(calib)
     rig, calibration = _calibration(calib)
-    opened: list[Take] = []
-    for path in takes:
-        take = Take(path)
-        missing = [c for c in take.cameras if c not in rig.ids]
-        if missing:
-            raise AnnotateError(f"{take.path / 'take.json'}: camera(s) {', '.join(missing)} are not in the calibration "
-                                f"{calib} ({len(rig)} cameras: {', '.join(rig.ids[:6])}{'...' if len(rig) > 6 else ''})")
-        opened.append(take)
+    opened = [Take(path) for path in takes]
+    used = [cameras_used(take, rig.ids, calib, cameras) for take in opened]
     keys = [take_key(t.path) for t in opened]
     if len(set(keys)) != len(keys):
         raise AnnotateError(f"the same take is given twice: {sorted(k for k in keys if keys.count(k) > 1)[0]}")
     writer = DatasetWriter(output, force=force)
     summary = AnnotateSummary(Path(output))
-    done = writer.done
+
+    given = {k: groups(t) if callable(groups) else groups.get(str(t.path), groups.get(k)) if groups else None
+             for t, k in zip(opened, keys)}
 
     def make_task(take: Take, key: str, bone_lengths=None, source="take") -> TakeTask:
-        given = None
-        if callable(groups):
-            given = groups(take)
-        elif groups is not None:
-            given = groups.get(str(take.path), groups.get(key))
-        return TakeTask(str(take.path), key, rig.subset(take.cameras), options, calibration,
-                        None if bone_lengths is None else np.asarray(bone_lengths, np.float64), source, given)
+        cams = used[keys.index(key)]
+        return TakeTask(str(take.path), key, rig.subset(cams), options, calibration, cams,
+                        annotate_inputs(take, cams, calibration, options, bones, given[key]),
+                        None if bone_lengths is None else np.asarray(bone_lengths, np.float64), source, given[key])
 
-    todo = [(t, k) for t, k in zip(opened, keys) if k not in done]
-    summary.resumed = [k for k in keys if k in done]
+    todo, done = [], writer.done
+    for take, key, cams in zip(opened, keys, used):
+        if len(cams) < len(take.cameras):
+            summary.left_out[key] = [c for c in take.cameras if c not in cams]
+        if key in done:
+            reasons = ["--force"] if force else differences(
+                writer.inputs(key), annotate_inputs(take, cams, calibration, options, bones, given[key]))
+            if not reasons:
+                summary.resumed.append(key)
+                continue
+            summary.redone[key] = reasons
+        todo.append((take, key))
     finished = len(summary.resumed)
     progress("annotate", finished, len(keys))
     session_bones = _session_bones(todo, list(zip(opened, keys)), bones, make_task, workers, scheduler, summary)
+    # built after the session's bones: a subject file written by this run is what the takes depend on
     tasks = [make_task(t, k, *session_bones.get(t.path.resolve().parent, (None, "take"))) for t, k in todo]
     for task, result in _run(annotate_take, tasks, workers, scheduler):
         if isinstance(result, KeyboardInterrupt):
@@ -407,8 +469,7 @@ def _session_bones(todo, every, bones, make_task, workers, scheduler, summary) -
     out: dict[Path, tuple[np.ndarray, str]] = {}
     pending: dict[Path, list[TakeTask]] = {}
     for session in sessions:
-        subject = session_subject(session)
-        file = session / "subjects" / f"{subject}.json" if subject else None
+        file = _subject_file(session)
         if file is not None and file.is_file():
             out[session] = (load_subject(file).bone_lengths, f"subject:{file.relative_to(session.parent)}")
             summary.subjects[session.name] = str(file)
@@ -425,13 +486,13 @@ def _session_bones(todo, every, bones, make_task, workers, scheduler, summary) -
             raise AnnotateError(f"{task.path}: bone lengths of the subject: {result}") from None
         samples[Path(task.path).resolve().parent].append(result)
     for session, arrays in samples.items():
-        est: BoneLengths = bone_lengths_from_samples(np.concatenate([a for a, _ in arrays]),
-                                                     max(thr for _, thr in arrays))
+        est = bone_lengths_from_samples(np.concatenate([a for a, _ in arrays]),
+                                        max(thr for _, thr in arrays))
         names = [Path(t.path).name for t in pending[session]]
-        subject = session_subject(session)
+        file = _subject_file(session)
         source = f"hand takes: {', '.join(names)}"
-        if subject:
-            file = save_subject(session / "subjects" / f"{subject}.json", subject, est, names, software_version())
+        if file is not None:
+            file = save_subject(file, file.stem, est, names, software_version())
             summary.subjects[session.name] = str(file)
             source = f"subject:{file.relative_to(session.parent)} (from {', '.join(names)})"
         out[session] = (est.bone_lengths, source)

@@ -4,7 +4,8 @@ Commands are loaded on demand: `--help` imports no command module (so neither to
 and a command imports only its own module and what that module needs.
 
 Exit codes: 0 success, 1 the work ran and failed (a failing check, a verdict), 2 bad input or
-usage (a wrong file, a missing key), 130 interrupted.
+usage (a wrong file, a missing key), 130 interrupted. A full disk or a permission error while
+writing is one line naming the path, exit 1.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import sys
 import click
 
 from manus_core.errors import ManusError
+from manus_core.fileio import as_output_error
 
 from . import __version__
 
@@ -23,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "rig": ("rig", "Create, check and list rig configurations (rig.toml)."),
     "leds": ("leds", "Switch, set and flash the LED panels."),
     "record": ("record", "Record a take from every camera of the rig."),
+    "recover": ("recover", "Finish a take whose recorder was killed mid-take."),
     "protocol": ("protocol", "Walk through the capture protocol of a session, one take per step."),
     "sync-report": ("sync_report", "Validate the synchronization of a recorded take."),
     "calibrate": ("calibrate", "Calibrate one camera (intrinsics) or the whole rig."),
@@ -64,10 +67,16 @@ class LazyGroup(click.Group):
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
             ctx.exit(130)
-        except ManusError as exc:
-            # Every error raised on purpose carries its exit code: one line, not a traceback.
-            err = click.ClickException(str(exc))
-            err.exit_code = exc.exit_code
+        except (ManusError, OSError, RuntimeError) as exc:
+            # Every error raised on purpose carries its exit code, and so does a write that failed
+            # for want of space or permission (most outputs already say so in fileio; h5py raises
+            # OSError or RuntimeError): one line, not a traceback. Anything else is a bug and keeps
+            # its traceback.
+            error = exc if isinstance(exc, ManusError) else as_output_error(exc)
+            if error is None:
+                raise
+            err = click.ClickException(str(error))
+            err.exit_code = error.exit_code
             raise err from exc
 
 

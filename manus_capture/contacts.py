@@ -163,4 +163,4 @@ def write_contacts(path, key: str, maps: ContactMaps, attrs: dict) -> None:
                            "contacts/accumulated": maps.accumulated,
                            "contacts/object_instant": maps.object_instant.astype(np.float16),
                            "contacts/object_accumulated": maps.object_accumulated},
-               {"contact_tau_m": maps.tau, "contact_soft": maps.soft, **attrs})
+               {"contact_tau_m": maps.tau, "contact_soft": maps.soft, **attrs}, stage="contacts")

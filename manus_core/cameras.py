@@ -16,7 +16,6 @@ import numpy as np
 from manus_core.errors import CalibrationFileError
 from manus_core.fileio import write_atomic
 
-
 PROJECT_BLOCK = 1 << 15  # (cameras x points) projected per block
 
 

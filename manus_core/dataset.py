@@ -1,8 +1,12 @@
-"""DATASET.h5: the annotations of many takes, one group per take (DESIGN.md, "On disk").
+"""DATASET.h5: the results of many takes, one group per take (DESIGN.md, "On disk").
 
-    with DatasetWriter("DATASET.h5") as w:           # resumable: w.done lists finished takes
-        w.add(annotation)                            # one TakeAnnotation, saved at once
-    ds = read_dataset("DATASET.h5")                  # Dataset: ds.takes, ds[key] -> TakeAnnotation
+    with DatasetWriter("DATASET.h5") as w:    # resumable: w.done lists the annotated takes,
+        w.add(annotation)                     # w.inputs(key) what made one; one TakeAnnotation, saved at once
+    ds = read_dataset("DATASET.h5")           # Dataset: ds.takes (any stage), ds.annotated
+    ds[key]                                   # -> TakeAnnotation (DatasetError: the take has no annotation)
+    ds.stages(key)                            # {"annotate", "segment", "contacts"}: what the take holds
+    ds.provenance(key, "segment")             # the inputs that made those results (None: not recorded)
+    add_arrays(path, key, arrays, attrs, stage="segment")    # how a later stage adds its part
 
 Layout (docs/annotate.md has every field):
 
@@ -14,7 +18,16 @@ Layout (docs/annotate.md has every field):
         joint_angles_raw (T,26), joint_angles (T,26), bone_lengths (20), ik_residual_m (T),
         flags (T) uint8 (FLAGS)
         attrs: cameras, kind, take, skeleton (JSON), calibration, calibration_sha256, software,
-               keypoint_source, bone_source, filter (JSON), flags (JSON legend), status
+               keypoint_source, bone_source, filter (JSON), flags (JSON legend), status,
+               cameras_left_out, provenance_annotate (JSON: manus_core.provenance)
+        masks/, paint/ (segment), contacts/ (contacts), with their own attrs and provenance_STAGE
+
+Stages own their parts of a take group (provenance.STAGE_ARRAYS): a take may hold any of them, so
+a reader asks `ds.stages(key)` before it reads one; `ds[key]` (the annotation) raises DatasetError
+for a take that has none. The writer replaces only annotate's arrays and attributes of a take and
+copies the rest over unchanged: a take re-annotated after it was re-recorded keeps its masks and
+contacts, whose own provenance then no longer matches the take (their readers say so) until
+segment and contacts run again.
 
 Writing is resumable and atomic. Each finished take is first saved on its own, atomically, as a
 part file in a folder beside the output (`.DATASET.h5.parts/`); `finalize` then builds the whole
@@ -22,7 +35,8 @@ file under a temporary name (the groups of an existing DATASET.h5 that are not b
 then the parts), fsyncs it and renames it over the output, and removes the parts. A run that is
 interrupted leaves the finished takes in the parts folder (and the old output untouched), and the
 next run picks them up instead of computing them again. Nothing is ever half-written under the
-final name.
+final name. Whether a take's annotation may be reused is the caller's decision: `inputs(key)` gives
+what made it, and annotate compares it with what would make it now (provenance.differences).
 """
 
 from __future__ import annotations
@@ -38,8 +52,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from manus_core.errors import DatasetError
+from manus_core.errors import DatasetError, OutputError
 from manus_core.fileio import atomic_output, write_atomic
+from manus_core.provenance import STAGE_ARRAYS, differences, read_provenance
 from manus_core.skeleton import DOF_NAMES, JOINT_NAMES, HandSkeleton
 
 FORMAT = "manus-capture dataset"
@@ -59,6 +74,11 @@ _ARRAYS = {  # name: (dtype, compress in frame chunks)
     "ik_residual_m": (np.float32, True), "flags": (np.uint8, True),
 }
 _JSON_ATTRS = ("skeleton", "filter", "flags")
+TAKE_MARK = "manus_take"   # attribute of every take group: what is a take does not depend on its name
+# The take attributes annotate writes: replaced (or removed) when annotate redoes a take.
+ANNOTATION_ATTRS = ("cameras", "kind", "take", "skeleton", "calibration", "calibration_sha256", "software",
+                    "keypoint_source", "bone_source", "filter", "flags", "status", "frame_groups",
+                    "cameras_left_out", "provenance_annotate")
 
 
 def software_version() -> str:
@@ -112,6 +132,7 @@ class TakeAnnotation:
 
 
 def _write_group(group, ann: TakeAnnotation) -> None:
+    group.attrs[TAKE_MARK] = True
     n_t = len(ann.frame_ns)
     for name, (dtype, chunked) in _ARRAYS.items():
         data = np.asarray(getattr(ann, name), dtype=dtype)
@@ -146,16 +167,31 @@ def _read_group(group, key: str) -> TakeAnnotation:
     return TakeAnnotation(key, cameras, attrs=attrs, **arrays)
 
 
-def _take_keys(f) -> list[str]:
-    """Keys of the take groups (groups holding frame_ns), at any depth."""
-    keys: list[str] = []
+def _stages(group) -> set[str]:
+    return {stage for stage, names in STAGE_ARRAYS.items() if any(name in group for name in names)}
 
-    def visit(name, obj):
-        if isinstance(obj, h5py.Group) and "frame_ns" in obj:
-            keys.append(name)
 
-    f.visititems(visit)
-    return sorted(keys)
+def _take_stages(f) -> dict[str, set[str]]:
+    """The take groups (groups holding any stage's results, at any depth; what is inside a take
+    group is never taken for another take) and the stages each holds."""
+    found: dict[str, set[str]] = {}
+
+    def walk(group) -> None:
+        for item in group.values():
+            if not isinstance(item, h5py.Group):
+                continue
+            # Files written before take groups were marked: a group holding a stage's results is
+            # a take, unless one of its own groups is marked (a take folder named "masks", say).
+            marked = item.attrs.get(TAKE_MARK) or (
+                not any(isinstance(c, h5py.Group) and c.attrs.get(TAKE_MARK) for c in item.values())
+                and _stages(item))
+            if marked:
+                found[item.name.lstrip("/")] = _stages(item)
+            else:
+                walk(item)
+
+    walk(f)
+    return dict(sorted(found.items()))
 
 
 def _check_format(f, path: Path) -> None:
@@ -176,14 +212,18 @@ def _open(path: Path):
 
 
 class Dataset:
-    """A DATASET.h5 opened for reading; takes are read on access."""
+    """A DATASET.h5 opened for reading; takes are read on access.
+
+    `takes` lists every take with any stage's results; `stages(key)` says which ("annotate",
+    "segment", "contacts"), `annotated` the takes that `ds[key]` can read."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         with _open(self.path) as f:
             _check_format(f, self.path)
             self.attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-            self.takes: list[str] = _take_keys(f)
+            self._stages = _take_stages(f)
+        self.takes: list[str] = list(self._stages)
 
     def __len__(self) -> int:
         return len(self.takes)
@@ -194,11 +234,43 @@ class Dataset:
     def __contains__(self, key: object) -> bool:
         return key in self.takes
 
+    @property
+    def annotated(self) -> list[str]:
+        """The takes with annotate's results (the ones ds[key] reads)."""
+        return [key for key in self.takes if "annotate" in self._stages[key]]
+
+    def stages(self, key: str) -> set[str]:
+        """The stages whose results take `key` holds (a subset of provenance.STAGE_ARRAYS)."""
+        self._check_key(key)
+        return set(self._stages[key])
+
+    def provenance(self, key: str, stage: str) -> dict | None:
+        """The inputs that made `stage`'s results of take `key` (None: not recorded)."""
+        self._check_key(key)
+        with _open(self.path) as f:
+            return read_provenance(f[key], stage)
+
+    def recording_differences(self, key: str, stage: str, inputs: dict | None = None) -> list[str]:
+        """Why take `key`'s annotation and the results of `stage` (or, given `inputs`, the results
+        those inputs make) are not of the same recording: the take was re-recorded between them
+        ([] when they are, or when either does not record it)."""
+        own = self.provenance(key, stage) if inputs is None else inputs
+        annotation = self.provenance(key, "annotate") if "annotate" in self.stages(key) else None
+        if not own or not annotation or "take" not in own or "take" not in annotation:
+            return []
+        return differences({"take": annotation["take"]}, {"take": own["take"]})
+
     def __getitem__(self, key: str) -> TakeAnnotation:
-        if key not in self.takes:
-            raise KeyError(f"{self.path}: no take {key!r} (takes: {', '.join(self.takes) or 'none'})")
+        self._check_key(key)
+        if "annotate" not in self._stages[key]:
+            raise DatasetError(f"{self.path}: take {key} has no annotation, only the results of "
+                               f"{', '.join(sorted(self._stages[key]))} (run annotate on it)")
         with _open(self.path) as f:
             return _read_group(f[key], key)
+
+    def _check_key(self, key: str) -> None:
+        if key not in self.takes:
+            raise KeyError(f"{self.path}: no take {key!r} (takes: {', '.join(self.takes) or 'none'})")
 
 
 def read_dataset(path: str | Path) -> Dataset:
@@ -217,38 +289,52 @@ def _new_file_attrs(f) -> None:
 class DatasetWriter:
     """Builds DATASET.h5 take by take, resumably (see the module doc).
 
-    force=True starts over: an existing output's takes and any saved parts are not reused (the old
-    output stays in place until finalize replaces it).
+    force=True does not reuse the parts of an interrupted run. Takes of the output that are not
+    added again, and the other stages' results of those that are, are always kept.
     """
 
     def __init__(self, path: str | Path, force: bool = False) -> None:
         self.path = Path(path)
         self.parts = self.path.parent / f".{self.path.name}.parts"
-        self.force = force
         if force and self.parts.exists():
             shutil.rmtree(self.parts)
-        self.existing: list[str] = []
-        if self.path.exists() and not force:
+        self.existing: dict[str, set[str]] = {}
+        if self.path.exists():
             with _open(self.path) as f:
                 _check_format(f, self.path)
-                self.existing = _take_keys(f)
+                self.existing = _take_stages(f)
 
     @property
     def saved(self) -> list[str]:
         """Keys of the takes saved as parts (finished, not yet in the output)."""
-        keys = []
+        return list(self._parts())
+
+    def _parts(self) -> dict[str, Path]:
+        found = {}
         for part in sorted(self.parts.glob("*.h5")) if self.parts.is_dir() else []:
             try:
                 with h5py.File(part, "r") as f:
-                    keys.append(str(f.attrs["key"]))
+                    found[str(f.attrs["key"])] = part
             except (OSError, KeyError):
                 part.unlink()   # cannot happen with atomic writes unless edited by hand: redo that take
-        return keys
+        return found
 
     @property
     def done(self) -> set[str]:
-        """Takes that need no work: in the output already, or saved as parts."""
-        return set(self.existing) | set(self.saved)
+        """Takes that have an annotation: in the output already, or saved as parts."""
+        return {k for k, stages in self.existing.items() if "annotate" in stages} | set(self.saved)
+
+    def inputs(self, key: str) -> dict | None:
+        """The inputs recorded with take `key`'s annotation (its saved part first, then the
+        output); None when it has none or they were not recorded."""
+        part = self._parts().get(key)
+        if part is not None:
+            with h5py.File(part, "r") as f:
+                return read_provenance(f["take"], "annotate")
+        if "annotate" not in self.existing.get(key, ()):
+            return None
+        with _open(self.path) as f:
+            return read_provenance(f[key], "annotate")
 
     def add(self, ann: TakeAnnotation) -> Path:
         """Save one finished take, atomically, as a part file."""
@@ -258,33 +344,45 @@ class DatasetWriter:
             f.attrs["key"] = ann.key
             _write_group(f.create_group("take"), ann)
         target = self.parts / _part_name(ann.key)
-        write_atomic(target, buffer.getvalue())
+        try:
+            write_atomic(target, buffer.getvalue())
+        except OutputError as exc:
+            reason = str(exc).rpartition("cannot write: ")[2]
+            raise OutputError(f"{self.path}: take {ann.key}: cannot write: {reason}") from exc
         return target
 
     def finalize(self) -> list[str]:
-        """Write the output (existing takes not replaced + all parts) atomically; returns its takes."""
-        parts = sorted(self.parts.glob("*.h5")) if self.parts.is_dir() else []
-        keys: list[str] = []
-        with atomic_output(self.path) as tmp, h5py.File(tmp, "w") as out:
-            _new_file_attrs(out)
-            new = {}
-            for part in parts:
-                with h5py.File(part, "r") as f:
-                    new[str(f.attrs["key"])] = part
-            if self.existing and not self.force:
-                with h5py.File(self.path, "r") as old:
-                    for key in self.existing:
-                        if key not in new:
-                            _copy(old, key, out, key)
-                            keys.append(key)
-            for key, part in new.items():
-                with h5py.File(part, "r") as f:
-                    _copy(f, "take", out, key)
-                keys.append(key)
+        """Write the output (its takes, each part's annotation replacing annotate's arrays and
+        attributes of its take) atomically; returns its takes."""
+        new = self._parts()
+        try:
+            self._write(new)
+        except OutputError as exc:
+            if new:
+                raise OutputError(f"{exc}; the {len(new)} finished take(s) stay in {self.parts} and the next "
+                                  f"run adds them") from exc
+            raise
         if self.parts.is_dir():
             shutil.rmtree(self.parts)
-        self.existing, self.force = sorted(keys), False
-        return self.existing
+        return list(self.existing)
+
+    def _write(self, new: dict[str, Path]) -> None:
+        with atomic_output(self.path) as tmp, h5py.File(tmp, "w") as out:
+            _new_file_attrs(out)
+            old = h5py.File(self.path, "r") if self.existing else None
+            try:
+                for key in self.existing:
+                    if key not in new:
+                        _copy(old[key], out, key)
+                for key, part in new.items():
+                    with h5py.File(part, "r") as f:
+                        group = _copy(f["take"], out, key)
+                    if key in self.existing:
+                        _keep_other_stages(old[key], group)
+            finally:
+                if old is not None:
+                    old.close()
+            self.existing = _take_stages(out)
 
     def __enter__(self) -> "DatasetWriter":
         return self
@@ -295,29 +393,61 @@ class DatasetWriter:
             self.finalize()
 
 
-def _copy(src, src_name: str, dst, dst_key: str) -> None:
+def _copy(src, dst, dst_key: str):
     parent, _, name = dst_key.rpartition("/")
     target = dst.require_group(parent) if parent else dst
-    src.copy(src[src_name], target, name=name)
+    target.copy(src, target, name=name)
+    return target[name]
 
 
-def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray], attrs: dict | None = None) -> None:
+def _keep_other_stages(old, group) -> None:
+    """Copy into a take's new annotation `group` what the other stages wrote into its `old` group."""
+    for name in old:
+        if name not in STAGE_ARRAYS["annotate"]:
+            old.copy(old[name], group, name=name)
+    for name, value in old.attrs.items():
+        if name not in ANNOTATION_ATTRS and name not in group.attrs:
+            group.attrs[name] = value
+
+
+def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray], attrs: dict | None = None,
+               stage: str | None = None) -> None:
     """Add (or replace) arrays of take `key` in DATASET.h5, gzip-compressed, atomically: a copy of
     the file is changed and renamed over it. Later stages (segment, contacts) add to the takes
-    that annotate wrote; a crash leaves the old file whole."""
+    that annotate wrote (or to a take of their own); a crash leaves the old file whole.
+
+    stage: the stage writing; an array outside its part of the take (provenance.STAGE_ARRAYS) is
+    refused with DatasetError before anything is written, so no stage overwrites another's, and
+    the stage's part is replaced whole (what an earlier run wrote and this one does not is gone)."""
     path = Path(path)
+    if stage is not None:
+        foreign = [name for name in arrays if name.split("/")[0] not in STAGE_ARRAYS[stage]]
+        if foreign:
+            raise DatasetError(f"{path}: take {key}: {stage} may not write {', '.join(foreign)} "
+                               f"(its part: {', '.join(STAGE_ARRAYS[stage])})")
+    # The arrays are compressed in memory first and then copied: HDF5 can crash the process when
+    # the disk fills up while it writes a compressed dataset, whereas a failed copy is an error.
+    staged = io.BytesIO()
+    with h5py.File(staged, "w") as src:
+        for name, data in arrays.items():
+            data = np.asarray(data)
+            chunks = (1,) + data.shape[1:] if data.ndim >= 3 else None
+            src.create_dataset(name, data=data, compression="gzip", compression_opts=4, chunks=chunks)
     with atomic_output(path) as tmp:
         if path.exists():
             shutil.copyfile(path, tmp)
-        with h5py.File(tmp, "a") as f:
+        with h5py.File(tmp, "a") as f, h5py.File(staged, "r") as src:
             if "format" not in f.attrs:
                 _new_file_attrs(f)
             group = f.require_group(key)
-            for name, data in arrays.items():
-                data = np.asarray(data)
+            group.attrs[TAKE_MARK] = True
+            for name in STAGE_ARRAYS[stage] if stage is not None else ():
+                if name in group:   # a stage's part is replaced whole: nothing of an earlier run lingers
+                    del group[name]
+            for name in arrays:
                 if name in group:
                     del group[name]
-                chunks = (1,) + data.shape[1:] if data.ndim >= 3 else None
-                group.create_dataset(name, data=data, compression="gzip", compression_opts=4, chunks=chunks)
+                parent, _, leaf = name.rpartition("/")
+                src.copy(src[name], group.require_group(parent) if parent else group, name=leaf)
             for k, v in (attrs or {}).items():
                 group.attrs[k] = v

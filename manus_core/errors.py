@@ -202,3 +202,17 @@ class SessionError(InputError):
 
 class TakeError(InputError):
     """A take folder or one of its files that cannot be read; names the file and the problem."""
+
+
+class OutputError(ManusError, OSError):
+    """An output that could not be written (disk full, no permission, read-only); names the path.
+
+    Also an OSError with the errno of the failed write, so code that handles a full disk itself
+    (the recorder) still recognizes it."""
+
+    exit_code = 1
+
+
+class LedStaleReply(LedError):
+    """The controller answered a request with a reply that cannot be its own (one it kept for an
+    earlier request with the same number): the command was not carried out."""

@@ -13,23 +13,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal, get_args
 
+import numpy as np
 import tomli_w
 from pydantic import Field
 
 from manus_core.errors import ConfigError
-from manus_core.validation import CLOSED, NOT_A_KEY, Bool, Float, Int, Str, validate, worded
+from manus_core.validation import CLOSED, NOT_A_KEY, Bool, Float, Int, Str, between, validate, worded
 
 BackendName = Literal["sim", "v4l2", "aravis"]
 SyncMode = Literal["free-run", "software-trigger", "hardware-trigger"]
 BACKENDS = get_args(BackendName)
 SYNC_MODES = get_args(SyncMode)
-MAX_SIDE = 16384                      # pixels: no camera gives a larger image
+MIN_SIDE, MAX_SIDE = 16, 16384       # pixels: no camera gives a smaller or a larger image
+MAX_FPS = 10000                       # a camera checks its own range when it is opened
+PLACEHOLDER = "CHANGE-ME"             # the device `rig init` writes for a real camera, to be replaced
+# the simulated hands (their bones are rig.sim.hand.SUBJECTS; the base layer cannot import them)
+SIM_SUBJECTS = ("s01", "s02", "s03")
 
 Vector3 = tuple[Float, Float, Float]
-Positive = Annotated[Float, Field(gt=0)]
-NonNegative = Annotated[Float, Field(ge=0)]
-Level = Annotated[Float, Field(ge=0, le=1), worded("must be in [0, 1], got {value}")]
-Side = Annotated[Int, Field(gt=0, le=MAX_SIDE)]
+Level = between(Float, 0, 1)
+Side = between(Int, MIN_SIDE, MAX_SIDE, "pixels")
+Rate = between(Float, 0, MAX_FPS, "frames per second", low_open=True)
+Milliseconds = between(Float, 0, 1000, "ms")
+Microseconds = between(Float, 0, 1e6, "us")
 Backend = Annotated[BackendName, worded(f"unknown backend {{value}} (known: {', '.join(BACKENDS)})")]
 
 
@@ -42,18 +48,20 @@ class SimCameraConfig:
     position: Vector3                 # camera centre, world frame, metres
     look_at: Vector3 = (0.0, 0.0, 0.0)
     up: Vector3 = (0.0, 0.0, 1.0)
-    hfov_deg: Annotated[Float, Field(gt=0, lt=180), worded("must be in (0, 180) degrees, got {value}")] = 70.0
+    hfov_deg: between(Float, 0, 180, "degrees", low_open=True, high_open=True) = 70.0
     dist: tuple[Float, Float, Float, Float, Float] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    clock_offset_ms: Float = 0.0      # device clock minus host clock at the take's start
-    drift_ppm: Float = 0.0            # device clock rate error
-    phase_ms: Float = 0.0             # free-run: first mid-exposure after the nominal tick
-    timestamp_jitter_us: NonNegative = 0.0  # noise on the device timestamp
-    trigger_latency_us: NonNegative = 0.0   # triggered: mean delay trigger -> mid-exposure
-    trigger_jitter_us: NonNegative = 0.0
-    latency_ms: NonNegative = 2.0     # mid-exposure -> host arrival (readout + transfer), mean
-    latency_jitter_ms: NonNegative = 0.2
+    # device clock minus host clock at the take's start
+    clock_offset_ms: between(Float, -1e6, 1e6, "ms") = 0.0
+    # device clock rate error; the sync report takes more than 1000 ppm for timestamps in another unit
+    drift_ppm: between(Float, -1000, 1000, "ppm") = 0.0
+    phase_ms: Milliseconds = 0.0      # free-run: first mid-exposure after the nominal tick
+    timestamp_jitter_us: Microseconds = 0.0  # noise on the device timestamp
+    trigger_latency_us: Microseconds = 0.0   # triggered: mean delay trigger -> mid-exposure
+    trigger_jitter_us: Microseconds = 0.0
+    latency_ms: Milliseconds = 2.0    # mid-exposure -> host arrival (readout + transfer), mean
+    latency_jitter_ms: Milliseconds = 0.2
     # probability that a frame never reaches the host
-    drop_rate: Annotated[Float, Field(ge=0, lt=1), worded("must be in [0, 1), got {value}")] = 0.0
+    drop_rate: between(Float, 0, 1, high_open=True) = 0.0
 
 
 @dataclass(frozen=True)
@@ -62,12 +70,12 @@ class CameraConfig:
 
     id: Annotated[Str, Field(min_length=1)]
     backend: Backend
-    device: Str                       # serial number, /dev/v4l/by-id path, or sim:N
+    device: Annotated[Str, Field(min_length=1)]   # serial number, /dev/v4l/by-id path, or sim:N
     width: Side = 1280
     height: Side = 720
-    fps: Positive = 120.0
+    fps: Rate = 120.0
     pixel_format: Str = "MJPG"
-    exposure_us: Positive = 2000.0
+    exposure_us: between(Float, 0, 1e6, "us", low_open=True) = 2000.0
     gain_db: Float = 0.0
     sim: SimCameraConfig | None = None
 
@@ -78,7 +86,7 @@ class LedConfig:
 
     port: Str                         # serial port, or "sim" for the simulated controller
     protocol: Literal["ascii", "dmx", "sim"] = "ascii"
-    panels: Annotated[Int, Field(ge=1)] = 6
+    panels: between(Int, 1, 512) = 6  # a DMX universe has 512 channels
     baudrate: Annotated[Int, Field(gt=0)] = 115200
     level: Level = 1.0                # default level
 
@@ -88,9 +96,9 @@ class StorageConfig:
     __pydantic_config__ = CLOSED   # unknown keys are errors
 
     root: Str = "sessions"
-    min_free_gb: NonNegative = 1.0
+    min_free_gb: Annotated[Float, Field(ge=0)] = 1.0
     # for backends that hand out raw frames
-    jpeg_quality: Annotated[Int, Field(ge=1, le=100), worded("must be an integer in 1..100, got {value}")] = 90
+    jpeg_quality: between(Int, 1, 100) = 90
     # "444" keeps colour at full resolution: the paint key and the hand/object colour models decide
     # the pixels along small painted spots on colour (paint and skin are close in brightness), and
     # 4:2:0 halves colour resolution for about 25 % smaller frames
@@ -111,15 +119,16 @@ class SimConfig:
 
     __pydantic_config__ = CLOSED   # unknown keys are errors
 
-    cube_edge: Positive = 1.2
-    tag_size: Positive = 0.24
-    tags_per_wall: Annotated[Int, Field(ge=0)] = 3
-    subject: Str = "s01"
+    cube_edge: between(Float, 0.5, 3, "m") = 1.2   # the table (0.4 m) stands inside
+    tag_size: between(Float, 0.02, 1, "m") = 0.24   # smaller tags make the walls' textures huge
+    tags_per_wall: between(Int, 0, 9) = 3   # 6 walls of 9x9 tags use 486 of the 587 ids of 36h11
+    subject: Literal[SIM_SUBJECTS] = "s01"
     object: Literal["box", "mug", "sphere"] = "mug"
     paint: Bool = False
-    time_scale: NonNegative = 0.0     # 0: as fast as rendering allows (virtual clock); 1: real time
-    noise_sigma: NonNegative = 2.0    # image noise, grey levels
-    supersample: Annotated[Int, Field(ge=1)] = 2  # anti-aliasing of the hand, object and table edges
+    # 0: as fast as rendering allows (virtual clock); 1: real time
+    time_scale: between(Float, 0, 10) = 0.0
+    noise_sigma: between(Float, 0, 255, "grey levels") = 2.0   # image noise
+    supersample: between(Int, 1, 8) = 2  # anti-aliasing of the hand, object and table edges
     seed: Int = 0
 
 
@@ -130,7 +139,7 @@ class RigConfig:
     name: Str
     cameras: tuple[CameraConfig, ...]
     layout: Str = "custom"
-    fps: Positive = 120.0
+    fps: Rate = 120.0
     sync: SyncMode = "free-run"
     leds: LedConfig | None = None
     storage: StorageConfig = field(default_factory=StorageConfig)
@@ -157,16 +166,37 @@ def rig_from_dict(doc: dict, source: str = "rig.toml") -> RigConfig:
     if not doc.get("cameras"):
         raise ConfigError(f"{source}: cameras: missing (at least one [[cameras]] entry)")
     rig = validate(RigConfig, {**doc["rig"], **{k: v for k, v in doc.items() if k != "rig"}}, source, ConfigError)
-    seen: dict[str, int] = {}
+    ids: dict[str, int] = {}
+    devices: dict[tuple[str, str], int] = {}
     for i, cam in enumerate(rig.cameras):
-        if cam.id in seen:
-            raise ConfigError(f"{source}: cameras[{i}].id: duplicate camera id {cam.id!r} "
-                              f"(also cameras[{seen[cam.id]}])")
-        seen[cam.id] = i
-        if cam.backend == "sim" and cam.sim is None:
-            raise ConfigError(f"{source}: cameras[{i}].sim: missing (a sim camera needs its pose)")
-    has_sim = any(c.backend == "sim" for c in rig.cameras)
-    return dataclasses.replace(rig, source=source, sim=rig.sim or (SimConfig() if has_sim else None))
+        if cam.id in ids:
+            raise ConfigError(f"{source}: cameras[{i}].id: duplicate camera id {cam.id!r} (also cameras[{ids[cam.id]}])")
+        ids[cam.id] = i
+        if PLACEHOLDER in cam.device:
+            raise ConfigError(f"{source}: cameras[{i}].device: {cam.device!r} is a placeholder: give the camera's "
+                              "serial number or /dev/v4l/by-id path (`manus-capture rig list` shows them)")
+        if (cam.backend, cam.device) in devices:
+            raise ConfigError(f"{source}: cameras[{i}].device: {cam.device!r} is also the device of "
+                              f"cameras[{devices[cam.backend, cam.device]}]; each camera needs its own")
+        devices[cam.backend, cam.device] = i
+        if cam.backend == "sim":
+            _check_sim_camera(cam.sim, f"{source}: cameras[{i}].sim")
+    sim = rig.sim or (SimConfig() if "sim" in {c.backend for c in rig.cameras} else None)
+    if sim is not None and sim.tags_per_wall and sim.tag_size >= sim.cube_edge / sim.tags_per_wall:
+        raise ConfigError(f"{source}: sim.tag_size: {sim.tag_size:g} m tags do not fit {sim.tags_per_wall} to a "
+                          f"{sim.cube_edge:g} m wall (must be < {sim.cube_edge / sim.tags_per_wall:.3g} m)")
+    return dataclasses.replace(rig, source=source, sim=sim)
+
+
+def _check_sim_camera(sim: SimCameraConfig | None, where: str) -> None:
+    """A simulated camera's pose: present, looking somewhere, and `up` not along its view."""
+    if sim is None:
+        raise ConfigError(f"{where}: missing (a sim camera needs its pose)")
+    view = np.subtract(sim.look_at, sim.position)
+    if np.linalg.norm(view) < 1e-6:
+        raise ConfigError(f"{where}.look_at: must differ from the camera's position, got {list(sim.look_at)}")
+    if np.linalg.norm(np.cross(view / np.linalg.norm(view), sim.up)) < 1e-6 * max(np.linalg.norm(sim.up), 1.0):
+        raise ConfigError(f"{where}.up: must be neither zero nor along the viewing direction, got {list(sim.up)}")
 
 
 def load_rig(path: str | Path) -> RigConfig:

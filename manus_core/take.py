@@ -12,6 +12,8 @@ Every error names the file and what is wrong (TakeError, exit code 2 in the CLI)
 from __future__ import annotations
 
 import json
+import os
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,6 +23,37 @@ import numpy as np
 from manus_core.errors import TakeError
 from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
 from manus_core.frames_csv import read_frames_csv
+
+BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
+
+
+def _start_ticks(pid: int) -> int | None:
+    """When process `pid` started (clock ticks since boot, /proc/PID/stat field 22); None if it
+    is gone. With the boot id it names one process for good: a pid alone is reused."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return int(stat.rsplit(")", 1)[1].split()[19])
+
+
+def recorder_identity() -> dict:
+    """Who is recording: written into take.json while the take runs, so that a later process can
+    tell a take still being recorded from one whose recorder died."""
+    boot = BOOT_ID.read_text().strip() if BOOT_ID.is_file() else ""
+    return {"pid": os.getpid(), "started": _start_ticks(os.getpid()), "host": socket.gethostname(), "boot_id": boot}
+
+
+def recorder_alive(meta: dict) -> bool:
+    """Whether the process named by take.json's "recorder" may still be writing the take: true
+    for a recorder on another host (it cannot be checked from here), false after a reboot."""
+    who = meta.get("recorder")
+    if not isinstance(who, dict) or not isinstance(who.get("pid"), int):
+        return False
+    here = recorder_identity()
+    if who.get("host") != here["host"]:
+        return True
+    return who.get("boot_id") == here["boot_id"] and _start_ticks(who["pid"]) == who.get("started")
 
 
 class Take:
@@ -47,6 +80,12 @@ class Take:
         except KeyError:
             raise TakeError(f"{meta_path}: cameras: an entry has no 'id'") from None
         self._frames: dict[str, np.ndarray] | None = None
+
+    @property
+    def recorder_running(self) -> bool:
+        """Whether the process that records this take may still be writing it (take.json's
+        "recorder"; a take whose status is no longer "recording" is never being written)."""
+        return self.meta.get("status") == "recording" and recorder_alive(self.meta)
 
     @property
     def fps(self) -> float | None:

@@ -9,6 +9,7 @@ problem becomes one line, by default "KEY: what is wrong", e.g.
 
     fps: Annotated[Float, Field(gt=0)] = 120.0
     drop_rate: Annotated[Float, Field(ge=0, lt=1), worded("must be in [0, 1), got {value}")] = 0.0
+    jpeg_quality: between(Int, 1, 100) = 90          # "must be an integer in 1..100, got 900"
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import typing
 from collections.abc import Callable
 from typing import Annotated, Any, NamedTuple, TypeVar
 
-from pydantic import AllowInfNan, ConfigDict, Strict, TypeAdapter, ValidationError, WrapValidator
+from pydantic import AllowInfNan, ConfigDict, Field, Strict, TypeAdapter, ValidationError, WrapValidator
 from pydantic_core import PydanticCustomError
 
 T = TypeVar("T")
@@ -57,6 +58,17 @@ def worded(template: str) -> WrapValidator:
     return WrapValidator(wrap)
 
 
+def between(tp: Any, low: float, high: float, unit: str = "", low_open: bool = False, high_open: bool = False) -> Any:
+    """`tp` (Int or Float) limited to low..high, any error worded with the range and `unit`:
+    "must be in (0, 180) degrees, got 0", "must be an integer in 1..100, got 900"."""
+    limits = Field(**{"gt" if low_open else "ge": low, "lt" if high_open else "le": high})
+    if tp is Int:
+        text = f"must be an integer in {low}..{high}"
+    else:
+        text = f"must be in {'(' if low_open else '['}{low:.15g}, {high:.15g}{')' if high_open else ']'}"
+    return Annotated[tp, limits, worded(text + (f" {unit}" if unit else "") + ", got {value}")]
+
+
 def _reject(value: Any, handler: Callable[[Any], Any]) -> Any:
     raise PydanticCustomError("extra_forbidden", "unknown key")
 
@@ -78,6 +90,7 @@ _WORDS = {
     "dataclass_type": "expected a table, got {type}",
     "dict_type": "expected a table, got {type}",
     "too_short": "expected at least {min_length} values, got {actual_length}",
+    "string_too_short": "must not be empty",
     "too_long": "expected at most {max_length} values, got {actual_length}",
     "greater_than": "must be > {gt:g}, got {input}",
     "greater_than_equal": "must be >= {ge:g}, got {input}",

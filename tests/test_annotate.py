@@ -22,7 +22,7 @@ from dataset_tools.sync import frame_groups
 from dataset_tools.triangulation import triangulate_frames
 from manus_capture.cli import cli
 from manus_core.dataset import FLAGS, read_dataset
-from manus_core.errors import AnnotateError, SessionError
+from manus_core.errors import AnnotateError, SessionError, TakeError
 from manus_core.frames_csv import HEADER, format_row
 from manus_core.ground_truth import GroundTruth, TruthCameras, TruthFrames, TruthHand, write_record
 from manus_core.rig_config import load_rig
@@ -181,7 +181,10 @@ def test_dask_and_the_process_pool_give_the_inline_result(session, inline_result
         assert other.keys() == reference.keys()
         for key in reference:
             for name, value in reference[key].items():
-                np.testing.assert_array_equal(other[key][name], value, err_msg=f"{path.name} {key} {name}")
+                # the same to rounding: a worker process's BLAS may split a sum over other threads
+                # than this process's (measured: 1e-16 relative, with OPENBLAS_NUM_THREADS=1 bit-equal)
+                np.testing.assert_allclose(other[key][name], value, rtol=1e-9, atol=1e-12,
+                                           err_msg=f"{path.name} {key} {name}")
 
 
 def test_an_interrupted_run_resumes_with_the_takes_it_had_not_finished(session, inline_result, tmp_path,
@@ -251,9 +254,10 @@ def test_bad_input_gives_clear_errors_or_marked_frames(session, inline_result, t
     root, rig = session["root"], session["rig"]
     with pytest.raises(AnnotateError, match="no such calibration"):
         annotate(session["takes"], tmp_path / "nowhere", tmp_path / "D.h5")
-    # A calibration that lacks two of the take's cameras.
-    rig.subset(rig.ids[2:]).save(tmp_path / "partial" / "cameras.json")
-    with pytest.raises(AnnotateError, match=re.escape(f"camera(s) {rig.ids[0]}, {rig.ids[1]} are not in the calibration")):
+    # A calibration with one of the take's cameras: nothing to triangulate with (a partial
+    # calibration of two or more is used, test_dataset_provenance.py).
+    rig.subset(rig.ids[5:6]).save(tmp_path / "partial" / "cameras.json")
+    with pytest.raises(TakeError, match=re.escape(f"1 of the take's cameras ({rig.ids[5]}) in the calibration")):
         annotate(session["takes"], tmp_path / "partial", tmp_path / "D.h5")
     assert not (tmp_path / "D.h5").exists()
 

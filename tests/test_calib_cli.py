@@ -70,6 +70,33 @@ def test_rig_command_on_a_folder_of_videos(shared_data, tmp_path):
     assert again.exit_code == 2 and "pass --force" in again.output
 
 
+@pytest.mark.faults
+def test_rig_command_leaves_out_an_unreadable_video(shared_data, tmp_path):
+    """One camera's video is garbage: --allow-partial calibrates the others and names why that one
+    is left out; without it, one line names the camera and the file before any detection runs."""
+    videos = tmp_path / "session"
+    videos.mkdir()
+    for c in range(3):
+        (videos / f"cam{c}.mp4").symlink_to(shared_data / f"caliscope_4cam_charuco/calibration/extrinsic/cam_{c}.mp4")
+    (videos / "cam3.mp4").write_bytes(b"\x00garbage" * 500)
+    board = tmp_path / "board.toml"
+    board.write_text(CHARUCO_TOML)
+    out = tmp_path / "calib"
+    args = ["calibrate", "rig", str(videos), "--board", str(board), "--board-frames", "6", "--workers", "1",
+            "-o", str(out)]
+    res = CliRunner().invoke(cli, args)
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    assert f"camera cam3: {videos / 'cam3.mp4'}: cannot open video" in res.output.strip().splitlines()[-1]
+    assert not out.exists()
+    res = CliRunner().invoke(cli, [*args, "--allow-partial"])
+    assert res.exit_code == 0, res.output
+    assert f"left out: camera cam3: {videos / 'cam3.mp4'}: cannot open video" in res.output
+    assert "3 cameras (board)" in res.output and "PARTIAL, cam3 left out" in res.output
+    assert load_cameras(out / "cameras.json").ids == ("cam0", "cam1", "cam2")
+    report = json.loads((out / "report.json").read_text())
+    assert report["partial"] and report["missing"] == {"cam3": f"{videos / 'cam3.mp4'}: cannot open video"}
+
+
 def write_take(folder, shared_data, frames: int = 20) -> None:
     """A take folder (DESIGN.md) holding 20 synchronized frames of the caliscope cameras as MJPEG."""
     import csv

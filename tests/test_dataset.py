@@ -10,7 +10,7 @@ import pytest
 
 from dataset_tools.hand.bones import BONE_NAMES, estimate_bone_lengths, load_subject, save_subject
 from dataset_tools.simulated_detector import SimulatedDetector, joints_at, keypoints_for_take, true_rig
-from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, read_dataset
+from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, add_arrays, read_dataset
 from manus_core.errors import BoneLengthError, DatasetError, GroundTruthError, SimulatedDetectorError
 from manus_core.ground_truth import (
     LABEL_FRAMES,
@@ -89,7 +89,7 @@ def test_interrupted_writer_resumes_and_an_existing_output_grows(tmp_path):
     second = make_annotation("S1/grasp_01", seed=3)
     w.add(second)
     assert w.finalize() == ["S1/grasp_01", "S1/hand_01"]
-    # A later run adds a take and keeps the others; force starts over.
+    # A later run adds a take and keeps the others.
     w = DatasetWriter(out)
     assert w.done == {"S1/hand_01", "S1/grasp_01"}
     w.add(make_annotation("S1/grasp_02", seed=4))
@@ -97,11 +97,31 @@ def test_interrupted_writer_resumes_and_an_existing_output_grows(tmp_path):
     ds = read_dataset(out)
     assert ds.takes == ["S1/grasp_01", "S1/grasp_02", "S1/hand_01"]
     assert_same(first, ds["S1/hand_01"])
+    # force drops an interrupted run's parts, never the output's other takes.
+    DatasetWriter(out).add(make_annotation("S1/grasp_01", seed=6))
     w = DatasetWriter(out, force=True)
-    assert w.done == set()
-    w.add(make_annotation("S1/grasp_01", seed=5))
+    assert w.saved == [] and w.done == {"S1/hand_01", "S1/grasp_01", "S1/grasp_02"}
+    replaced = make_annotation("S1/grasp_01", seed=5)
+    w.add(replaced)
     w.finalize()
-    assert read_dataset(out).takes == ["S1/grasp_01"]
+    ds = read_dataset(out)
+    assert ds.takes == ["S1/grasp_01", "S1/grasp_02", "S1/hand_01"]
+    assert_same(replaced, ds["S1/grasp_01"])
+
+
+def test_a_stage_part_is_replaced_whole_and_a_take_named_like_a_stage_is_still_a_take(tmp_path):
+    path = tmp_path / "DATASET.h5"
+    with DatasetWriter(path) as w:
+        w.add(make_annotation("S/grasp"))
+    masks = np.zeros((2, 4, 3, 3), bool)
+    add_arrays(path, "S/grasp", {"masks/hand": masks, "paint/masks": masks}, stage="segment")
+    add_arrays(path, "S/grasp", {"masks/hand": masks}, stage="segment")   # redone without a swatch
+    with h5py.File(path, "r") as f:
+        assert "paint" not in f["S/grasp"] and "joint_angles" in f["S/grasp"]
+    add_arrays(path, "S/masks", {"masks/hand": masks}, stage="segment")   # a take folder called "masks"
+    ds = read_dataset(path)
+    assert ds.takes == ["S/grasp", "S/masks"] and ds.stages("S/masks") == {"segment"}
+    assert ds.annotated == ["S/grasp"]
 
 
 def test_not_a_dataset_and_bad_shapes_are_clear_errors(tmp_path):

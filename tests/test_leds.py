@@ -16,7 +16,7 @@ import serial
 from click.testing import CliRunner
 
 from manus_capture.cli import cli
-from manus_core.errors import LedDisconnected, LedError, LedRejected, LedTimeout, LedValueError
+from manus_core.errors import LedDisconnected, LedError, LedRejected, LedStaleReply, LedTimeout, LedValueError
 from manus_core.rig_config import LedConfig
 from rig.leds import AsciiLedController, Backoff, DmxLedController, SimulatedLedController, now_ns, open_led_controller
 from rig.leds.dmx import EnttecParser, get_parameters_message, parse_parameters, send_dmx_message
@@ -109,7 +109,7 @@ def test_levels_flash_status_and_log(sim, leds):
 
     records = leds.records()
     assert [r["cmd"] for r in records] == ["LVL", "LVL", "STAT", "FLASH", "LVL"]
-    assert [r["seq"] for r in records] == [1, 2, 3, 4, 5]
+    assert [r["seq"] for r in records] == [2, 3, 4, 5, 6]                # 1 was the session's HELLO
     assert all(r["status"] == "ok" and r["attempts"] == 1 and r["t_send_ns"] < r["t_ack_ns"] for r in records)
     assert records[3]["args"] == [40, 1000]
     us = [r["controller_t_us"] for r in records]
@@ -179,9 +179,14 @@ def test_unplugged_for_good_gives_a_clear_error(sim):
                             backoff=Backoff(initial_s=0.02, max_s=0.05, give_up_s=0.3)) as leds:
         leds.on()
         sim.unplug()
-        with pytest.raises(LedDisconnected, match=r"ttyLEDSIM: disconnected .* not back after 0.3 s"):
+        with pytest.raises(LedDisconnected, match=r"ttyLEDSIM: disconnected .* not back after 0.3 s.*"
+                                                  r"; LVL \(seq 3\) not acknowledged"):
             leds.off()
-        assert leds.records()[-1]["event"] == "disconnected"
+        *_, command, event = leds.records()
+        assert event["event"] == "disconnected"
+        # the command that failed says so, with its error, rather than staying pending
+        assert command["cmd"] == "LVL" and command["status"] == "disconnected"
+        assert command["error"].startswith(f"LED controller on {sim.path}: disconnected")
 
 
 def test_noise_torn_and_corrupted_replies(sim, leds):
@@ -191,12 +196,13 @@ def test_noise_torn_and_corrupted_replies(sim, leds):
     sim.fragment_replies = False
     sim.corrupt_replies = 1                               # the ack of the flash is hit by noise
     record = leds.flash(20)
-    assert record["attempts"] == 2 and record["status"] == "ok"
+    # the resent flash is answered from the cache, flagged so: its own earlier reply, accepted
+    assert record["attempts"] == 2 and record["status"] == "ok" and record["reply"] == {"cached": "1"}
     sim.drop_requests = 1                                 # the next request is lost on the way
     assert leds.set_panel(1, 0.3)["attempts"] == 2
     # Retried with the same sequence number: the flash ran once, not twice.
     verbs = [v for _, v in sim.executed()]
-    assert verbs == ["LVL", "FLASH", "LVL"]
+    assert verbs == ["HELLO", "LVL", "FLASH", "LVL"]
 
 
 def test_controller_side_resynchronizes_after_host_noise(sim):
@@ -212,12 +218,12 @@ def test_silent_controller_times_out_then_recovers(sim):
     with AsciiLedController(sim.path, panels=4, timeout_s=0.1, retries=2) as leds:
         leds.on()
         sim.mute = True
-        with pytest.raises(LedTimeout, match=r"no answer to FLASH \(seq 2\) after 3 attempts of 0.1 s"):
+        with pytest.raises(LedTimeout, match=r"no answer to FLASH \(seq 3\) after 3 attempts of 0.1 s"):
             leds.flash(10)
         assert leds.records()[-1]["status"] == "timeout"
         sim.mute = False
         assert leds.off()["status"] == "ok"
-    assert [v for _, v in sim.executed()] == ["LVL", "LVL"]      # the unanswered flash never ran
+    assert [v for _, v in sim.executed()] == ["HELLO", "LVL", "LVL"]      # the unanswered flash never ran
 
 
 def test_reboot_is_noticed_and_set_point_restored(sim, leds):
@@ -228,6 +234,59 @@ def test_reboot_is_noticed_and_set_point_restored(sim, leds):
     wait_until(lambda: leds.poll() or any(r.get("event") == "boot" for r in leds.records()), "BOOT")
     assert np.array_equal(sim.state_at(now_ns()), [0.4] * 4)
     assert [r.get("event") or r.get("why") for r in leds.records()[-2:]] == ["boot", "reboot"]
+
+
+# -- sessions: one controller, one connection after another -----------------------------------
+def test_each_connection_is_a_session_of_its_own(sim):
+    with AsciiLedController(sim.path, panels=4, **FAST) as first:
+        first.on(0.5)
+        first.flash(10)
+    with AsciiLedController(sim.path, panels=4, **FAST) as second:
+        # numbered from 1 again, so its commands have the first connection's numbers ...
+        assert second.levels == (0.5,) * 4                # ... and it starts from the panels as they are
+        second.set_panel(1, 0.2)
+        second.flash(10)
+    assert first.session["nonce"] != second.session["nonce"]
+    assert [r["seq"] for r in first.records()] == [r["seq"] for r in second.records()] == [2, 3]
+    # ... and every one of them was carried out, not answered from the first one's replies
+    assert [v for _, v in sim.executed()] == ["HELLO", "LVL", "FLASH", "HELLO", "LVL", "FLASH"]
+    assert len(sim.flashes()) == 2
+    after = sim.flashes()[-1][1]
+    assert np.array_equal(sim.state_at(after), [0.5, 0.2, 0.5, 0.5])
+
+
+def test_stale_replies_of_an_earlier_connection_are_skipped(sim):
+    # replies that an earlier process never read, still in the port's buffer
+    sim.inject(encode(1, "OK", 99, "nonce=7", "levels=1000/1000/1000/1000") + encode(2, "OK", 100))
+    with AsciiLedController(sim.path, panels=4, **FAST) as leds:
+        assert leds.levels == (0.0,) * 4                  # the HELLO reply with its own nonce, not the stale one
+        record = leds.on(0.5)
+    assert record["controller_t_us"] != 100 and np.array_equal(sim.state_at(now_ns()), [0.5] * 4)
+
+
+@pytest.mark.parametrize("fault, why", [("hello_keeps_cache", "a reply the controller kept for an earlier request"),
+                                        ("unflagged_cache", r"a reply from controller time \d+ µs, before")])
+def test_a_reply_that_cannot_be_the_commands_own_is_refused(sim, fault, why):
+    """Firmware that keeps its reply cache across HELLO: the host notices instead of trusting it."""
+    sim.hello_keeps_cache = True
+    setattr(sim, fault, True)
+    with AsciiLedController(sim.path, panels=4, **FAST) as first:
+        first.on(0.5)
+    with AsciiLedController(sim.path, panels=4, **FAST) as second:
+        with pytest.raises(LedStaleReply, match=rf"ttyLEDSIM: LVL \(seq 2\) was answered with {why}.*not carried out"):
+            second.off()
+        assert second.records()[-1]["status"] == "stale"
+    assert np.array_equal(sim.state_at(now_ns()), [0.5] * 4)
+    assert LedStaleReply.exit_code == 1
+
+
+def test_firmware_without_sessions_is_refused(sim):
+    sim.no_hello = True
+    with pytest.raises(LedError, match=r"ttyLEDSIM: refused HELLO, so its firmware predates sessions"):
+        AsciiLedController(sim.path, panels=4, **FAST)
+    sim.no_hello = False
+    with AsciiLedController(sim.path, panels=4, **FAST) as leds:   # the refused one let go of the port
+        leds.on()
 
 
 def test_open_led_controller_for_each_protocol(tmp_path):

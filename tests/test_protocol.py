@@ -61,6 +61,9 @@ def test_protocol_rejects_an_object_the_sim_does_not_have(tmp_path):
 
 def test_protocol_prompts_the_operator_on_a_real_rig(tmp_path, monkeypatch):
     rig = make_rig("cube53", cameras=2, resolution=(64, 48), backend="aravis")
+    # the lab has filled in its cameras' serials (rig check refuses rig init's CHANGE-ME placeholders)
+    rig = dataclasses.replace(rig, cameras=tuple(dataclasses.replace(c, device=f"SN{k}")
+                                                 for k, c in enumerate(rig.cameras)))
     (tmp_path / "rig.toml").write_text(rig_to_toml(rig))
     recorded = []
 

@@ -3,6 +3,7 @@ take, readable, in frames.csv and in its video; faults and signals finish every 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import json
@@ -11,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -175,6 +177,7 @@ class Disconnecting:
         return getattr(self.inner, name)
 
 
+@pytest.mark.faults
 def test_lost_camera_is_reported_and_the_others_go_on(tmp_path, monkeypatch):
     rig = sim_rig()
     lost = rig.cameras[1].id
@@ -195,6 +198,7 @@ def test_lost_camera_is_reported_and_the_others_go_on(tmp_path, monkeypatch):
     assert load_session(tmp_path / "s").take("t")["lost_cameras"] == [lost]
 
 
+@pytest.mark.faults
 def test_failing_writer_interrupts_the_take_and_keeps_every_file_readable(tmp_path, monkeypatch):
     rig = sim_rig()
     victim = rig.cameras[0].id
@@ -215,6 +219,7 @@ def test_failing_writer_interrupts_the_take_and_keeps_every_file_readable(tmp_pa
     assert load_session(tmp_path / "s").take("t")["status"] == "interrupted"
 
 
+@pytest.mark.faults
 def test_full_disk_finishes_the_take(tmp_path):
     """A real ENOSPC: the session lives on a small tmpfs that fills up during the take."""
     if shutil.which("unshare") is None or subprocess.run(
@@ -244,26 +249,31 @@ def test_full_disk_finishes_the_take(tmp_path):
     assert "disk full" in (tmp_path / "stdout").read_text()
 
 
+@contextlib.contextmanager
+def recording(rig, tmp_path: Path, rows: int = 60) -> Iterator[subprocess.Popen]:
+    """`record` of a 60 s take TMP/s/t in a process of its own, once frames.csv has `rows` rows."""
+    rig_file = write_rig(rig, tmp_path / "rig.toml")
+    proc = subprocess.Popen([sys.executable, "-m", "manus_capture.cli", "record", "--rig", str(rig_file),
+                             "--session", str(tmp_path / "s"), "--take", "t", "--kind", "calibration",
+                             "--duration", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        csv = tmp_path / "s" / "t" / "frames.csv"
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (csv.exists() and csv.read_text().count("\n") > rows):
+            time.sleep(0.05)
+        yield proc
+    finally:
+        proc.kill()
+
+
+@pytest.mark.faults
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_signal_stops_the_take_in_order(tmp_path, signum):
-    rig_file = write_rig(sim_rig(drop_rate=0.02), tmp_path / "rig.toml")
     take_dir = tmp_path / "s" / "t"
-    with open(tmp_path / "err", "w") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "manus_capture.cli", "record", "--rig", str(rig_file),
-                                 "--session", str(tmp_path / "s"), "--take", "t", "--kind", "calibration",
-                                 "--duration", "60"], stdout=subprocess.PIPE, stderr=err, text=True)
-        try:
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:
-                csv = take_dir / "frames.csv"
-                if csv.exists() and csv.read_text().count("\n") > 60:
-                    break
-                time.sleep(0.05)
-            proc.send_signal(signum)
-            out, _ = proc.communicate(timeout=60)
-        finally:
-            proc.kill()
-    assert proc.returncode == 130, (tmp_path / "err").read_text()[-2000:]
+    with recording(sim_rig(drop_rate=0.02), tmp_path) as proc:
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err[-2000:]
     meta = json.loads((take_dir / "take.json").read_text())
     assert meta["status"] == "interrupted" and meta["reason"] == f"stopped by {signal.Signals(signum).name}" + (
         " (Ctrl-C)" if signum == signal.SIGINT else "")
@@ -274,6 +284,29 @@ def test_signal_stops_the_take_in_order(tmp_path, signum):
         assert counts[cam] == int(((exposure[c] >= 0) & ~dropped[c]).sum())
     assert 20 <= sum(counts.values()) < 3 * 7200
     assert load_session(tmp_path / "s").take("t")["status"] == "interrupted"
+
+
+@pytest.mark.faults
+def test_sigkill_leaves_every_written_frame_readable_and_recover_finishes_the_take(tmp_path):
+    take_dir = tmp_path / "s" / "t"
+    with recording(sim_rig(), tmp_path) as proc:
+        proc.kill()
+        proc.communicate(timeout=30)
+    assert json.loads((take_dir / "take.json").read_text())["status"] == "recording"
+    assert (take_dir / ".reserve").exists()
+    runner = CliRunner()
+    report = runner.invoke(cli, ["sync-report", str(take_dir)])
+    assert "killed" in report.output, report.output
+    done = runner.invoke(cli, ["recover", str(take_dir)])
+    assert done.exit_code == 0, done.output
+    meta = json.loads((take_dir / "take.json").read_text())
+    counts = check_readable(take_dir)   # every row has its packet, every packet decodes
+    assert meta["status"] == "interrupted" and "killed" in meta["reason"]
+    assert {c["id"]: c["frames"] for c in meta["cameras"]} == counts and sum(counts.values()) > 60
+    assert meta["frames"] == sum(counts.values()) and not (take_dir / ".reserve").exists()
+    assert load_session(tmp_path / "s").take("t")["status"] == "interrupted"
+    again = runner.invoke(cli, ["recover", str(take_dir)])
+    assert again.exit_code == 2 and "nothing to recover" in again.output
 
 
 def test_refuses_to_start_without_disk_and_existing_takes(tmp_path, monkeypatch):

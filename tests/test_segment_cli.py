@@ -4,6 +4,7 @@ the per-pixel truth of ground_truth.h5, overlays written, bad input reported."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 
 import cv2
@@ -17,6 +18,7 @@ from dataset_tools.sync import frame_groups
 from manus_capture.cli import cli
 from manus_core.cameras import CameraRig
 from manus_core.ground_truth import GroundTruth
+from manus_core.provenance import provenance_attrs
 from rig.layouts import make_rig
 from rig.record import RecordOptions, record_take
 from rig.sim.cube import true_cameras
@@ -90,12 +92,45 @@ def test_segment_grasp_take_into_dataset(grasp_session):
     # at 320x180 finger edges are a large share of the masks: measured 0.915 / 0.964; the issue's
     # 0.95 is tested at 640x360 in test_segmentation.py
     assert hand_iou >= 0.9 and obj_iou >= 0.93, (hand_iou, obj_iou)
-    # the masks are there: a second run asks for --force
+    # the masks are there, made from the same inputs: kept, the file untouched
+    before = out.read_bytes()
     again = CliRunner().invoke(cli, ["segment", str(session / "S" / "grasp"), "--calib", str(session / "cameras.json"),
-                                     "--background", str(session / "S" / "empty"), "-o", str(out)])
-    assert again.exit_code == 2 and "--force" in again.output, again.output
+                                     "--background", str(session / "S" / "empty"), "--object-take",
+                                     str(session / "S" / "object"), "--every", "3", "-o", str(out)])
+    assert again.exit_code == 0 and f"kept (same inputs): the masks of S/grasp in {out}" in again.output, again.output
+    assert out.read_bytes() == before
+    # the capture day's step 6 before annotate: stats failed on the whole file (`take
+    # S/grasp/masks: missing frame_index`); it lists the take and what it holds
+    stats = CliRunner().invoke(cli, ["stats", str(out)])
+    assert stats.exit_code == 0 and "1 takes, 0 frames" in stats.output and "not annotated: S/grasp" in stats.output
     overlays = sorted((session / "overlays").glob("*.png"))
     assert len(overlays) == 5 and all(cv2.imread(str(p)).shape == (H, W, 3) for p in overlays)
+
+
+def test_segment_redoes_the_masks_of_a_re_recorded_take(grasp_session, tmp_path):
+    """The masks record what made them (the take's recording, the calibration, the settings): a
+    second run keeps them only when all of it is the same, and otherwise redoes them, saying why."""
+    session = grasp_session
+    take = tmp_path / "S" / "grasp"   # the same key, S/grasp, in a folder this test may change
+    shutil.copytree(session / "S" / "grasp", take)
+    out = tmp_path / "D.h5"
+    args = ["segment", str(take), "--calib", str(session / "cameras.json"), "--background",
+            str(session / "S" / "empty"), "--every", "5", "-o", str(out)]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    # recorded again: here one camera's last frame is gone
+    cam = CameraRig.load(session / "cameras.json").ids[0]
+    rows = (take / "frames.csv").read_text().splitlines()
+    last = max(i for i, row in enumerate(rows) if row.startswith(cam + ","))
+    (take / "frames.csv").write_text("\n".join(rows[:last] + rows[last + 1:]) + "\n")
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    frames = sum(row.startswith(cam + ",") for row in rows)
+    assert f"redone the masks of S/grasp: take re-recorded: frames of {cam} {frames} -> {frames - 1}" in result.output
+    result = CliRunner().invoke(cli, [*args[:-2], "--every", "4", "-o", str(out)])
+    assert result.exit_code == 0 and "redone the masks of S/grasp: every 5 -> 4" in result.output, result.output
+    with h5py.File(out) as f:
+        inputs = json.loads(f["S/grasp"].attrs["provenance_segment"])
+    assert inputs["take"]["frames"][cam] == frames - 1 and inputs["every"] == 4
 
 
 def test_segment_object_take_is_all_object(grasp_session):
@@ -132,12 +167,23 @@ def test_segment_bad_input(canon_session, tmp_path):
     result = CliRunner().invoke(cli, ["segment", str(session / "S" / "canon"), "--calib", str(session / "cameras.json"),
                                       "--background", str(tmp_path / "nothing"), "-o", str(tmp_path / "d.h5")])
     assert result.exit_code == 2 and "nothing" in result.output, result.output
-    # a camera of the take missing from the calibration: one line, exit code 2
+    # a camera of the take missing from the calibration (calibrate --allow-partial): the others are
+    # segmented and the warning names it
     rig = CameraRig.load(session / "cameras.json")
     rig.subset(rig.ids[:-1]).save(tmp_path / "four.json")
-    result = CliRunner().invoke(cli, ["segment", str(session / "S" / "canon"), "--calib", str(tmp_path / "four.json"),
-                                      "--background", str(session / "S" / "empty"), "-o", str(tmp_path / "d.h5")])
-    assert result.exit_code == 2 and f"cameras {rig.ids[-1]} are not in the calibration" in result.output, result.output
+    args = ["segment", str(session / "S" / "canon"), "--calib", str(tmp_path / "four.json"),
+            "--background", str(session / "S" / "empty"), "--every", "4", "-o", str(tmp_path / "d.h5")]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert f"warning: cameras {rig.ids[-1]} are not in the calibration: left out (masks of 4 of 5" in result.output
+    with h5py.File(tmp_path / "d.h5") as f:
+        group = f[take_key(session / "S" / "canon")]
+        assert list(group.attrs["mask_cameras"]) == list(rig.ids[:-1]) and group["masks/hand"].shape[1] == 4
+    # --cameras: a camera the calibration lacks, one not in the take, or fewer than 2: one line, exit code 2
+    for cameras, problem in [(rig.ids[-1], f"cameras {rig.ids[-1]} are not in the calibration"),
+                             ("nope", "no camera nope in this take"), (rig.ids[0], "masks need at least 2")]:
+        result = CliRunner().invoke(cli, [*args, "--cameras", cameras, "--force"])
+        assert result.exit_code == 2 and problem in result.output and "Traceback" not in result.output, result.output
     # a camera missing from the background take: a warning, its masks empty, the others still segmented
     empty = tmp_path / "empty"
     shutil.copytree(session / "S" / "empty", empty)
@@ -235,3 +281,25 @@ def test_segment_paint_on_the_hand_surface(canon_session, tmp_path):
     score = (voted & true).sum() / max((voted | true).sum(), 1)
     # 5 cameras at 320x180: measured IoU 0.80 over 3450 points (61 % of the template seen)
     assert score >= 0.7, score
+    # poses annotated from an earlier recording of the take: the paint is not voted with them, and
+    # the note says why
+    add_arrays(out, take_key(session / "S" / "canon"), {},
+               provenance_attrs("annotate", {"take": {"frames": {}, "frames_csv_sha256": ""}}))
+    result = CliRunner().invoke(cli, [*args, "--every", "4"])
+    assert result.exit_code == 0 and "poses of S/canon are of another recording (take re-recorded" in result.output
+    assert "seen surface points" not in result.output
+
+
+def test_reconstruct_object_on_a_partial_calibration(grasp_session, tmp_path):
+    """After calibrate --allow-partial, reconstruct uses the calibrated cameras and names the others."""
+    session = grasp_session
+    rig = CameraRig.load(session / "cameras.json")
+    rig.subset(rig.ids[1:]).save(tmp_path / "four.json")
+    args = ["reconstruct", "object", "--take", str(session / "S" / "object"), "--cameras", str(tmp_path / "four.json"),
+            "--masks", "truth", "--iterations", "2", "--points", "200", "-o", str(tmp_path / "object.safetensors")]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert f"note: cameras {rig.ids[0]} of {session / 'S' / 'object'} are not in the calibration: left out" \
+        in result.output and "from 4 views" in result.output
+    result = CliRunner().invoke(cli, [*args, "--only-cameras", rig.ids[1], "--force"])
+    assert result.exit_code == 2 and "training needs at least 2" in result.output, result.output

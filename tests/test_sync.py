@@ -36,6 +36,7 @@ from manus_core.frames_csv import HEADER, format_row
 from manus_core.ground_truth import GroundTruth
 from manus_core.take import Take
 from rig.layouts import make_rig
+from rig.mkv import MkvWriter
 from rig.sim.cube import HARDWARE_TRIGGER_LATENCY_NS, SimulatedCube
 
 FPS = 120.0
@@ -163,9 +164,12 @@ def test_free_run_groups_are_as_tight_as_the_phases_allow(long_free_run) -> None
     assert np.median(g.spread_ns[both] - true_floor[both]) < 0.15e6
     report = build_report(result)
     assert abs(report["spread_floor_ms"] - np.median(true_floor[both]) / 1e6) < 0.15
-    assert report["spread_ms"]["median"] > 3.0
-    assert report["verdict"] == "fail"
-    assert any("free-running cameras" in r for r in report["reasons"])
+    assert report["spread_ms"]["median"] > 3.0 and report["tolerance_met"] is False
+    # the verdict judges what free-running cameras can deliver: the spread above their phase floor
+    # (none here), and says what a 3 ms bound needs
+    assert report["spread_above_floor_ms"]["p95"] < 0.15
+    assert all("of frames dropped" in r for r in report["reasons"])   # its 1 % drop rate, not its spread
+    assert any(n.startswith("free-run:") and "hardware-trigger" in n for n in report["notes"])
     # the frames a camera lost are the holes in its column
     members = np.count_nonzero(g.frame_index >= 0, axis=0)
     assert np.array_equal(members, [len(frames[c]["seq"]) - u for c, u in zip(g.cameras, g.unassigned)])
@@ -383,12 +387,23 @@ def test_optical_check_catches_wrong_timestamps(sim_take: Path, tmp_path: Path) 
     assert all(e["error_ms"] == 0.0 for e in others)
 
 
+def write_videos(root: Path, counts: dict[str, int]) -> None:
+    """cams/CAM.mkv of `counts[CAM]` packets, as the recorder muxes them; what they hold is never
+    decoded here (no LED log), only counted."""
+    (root / "cams").mkdir(parents=True, exist_ok=True)
+    for cam, n in counts.items():
+        with MkvWriter(root / "cams" / f"{cam}.mkv", 32, 18, FPS, fsync=False) as mkv:
+            for start in range(0, n, 256):
+                mkv.write([b"frame"] * min(256, n - start))
+
+
 def _hand_take(root: Path, sync: str = "hardware-trigger", cameras: int = 4) -> Path:
-    """A take folder with frames.csv and take.json only (no videos, no LED log)."""
+    """A take folder with frames.csv, take.json and videos whose packets are not images (no LED log)."""
     rig = sim_rig(cameras, sync)
     cube = SimulatedCube(rig, "calibration", duration_s=3.0)
     frames, _, _ = clock_frames(cube, int(3 * FPS))
     root.mkdir(parents=True)
+    write_videos(root, {cam: len(t["seq"]) for cam, t in frames.items()})
     lines = [HEADER + "\n"]
     for cam, t in frames.items():
         lines += [format_row(cam, s, d, h, 1000, 0) for s, d, h in zip(t["seq"], t["t_device_ns"], t["t_host_ns"])]
@@ -408,12 +423,18 @@ def test_cli_verdicts_and_overwrite(sim_take: Path, tmp_path: Path) -> None:
     res = runner.invoke(cli, ["sync-report", str(good)])
     assert res.exit_code == 2 and "sync_report.json: exists (use --force" in res.output
     assert runner.invoke(cli, ["sync-report", str(good), "--force"]).exit_code == 0
-    # the free-running sim take: its phases keep exposures apart, so the verdict is fail (exit 1)
+    # the free-running sim take: its phases keep exposures further apart than 3 ms, which is what
+    # free-running cameras deliver: judged against their phase floor it passes, and the command
+    # says what a tighter bound needs (its 2 % drop rate is let through here)
     free = tmp_path / "free"
     shutil.copytree(sim_take, free)
-    res = runner.invoke(cli, ["sync-report", str(free)])
-    assert res.exit_code == 1, res.output
-    assert "free-running cameras" in res.output and ": fail (6 cameras" in res.output
+    res = runner.invoke(cli, ["sync-report", str(free), "--max-drop-pct", "5"])
+    assert res.exit_code == 0, res.output
+    assert ": pass (6 cameras" in res.output and "(phase floor " in res.output
+    assert "note: free-running cameras cannot be grouped tighter" in res.output and "hardware trigger" in res.output
+    # a bound free-running cameras cannot meet fails no take; one on the spread of triggered ones does
+    res = runner.invoke(cli, ["sync-report", str(good), "--force", "--tolerance-ms", "0.01"])
+    assert res.exit_code == 1 and "fail: exposure spread p95" in res.output, res.output
 
 
 def test_bad_input(tmp_path: Path) -> None:

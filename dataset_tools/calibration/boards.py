@@ -56,7 +56,8 @@ def _in_metres(square: float) -> float:
     return square
 
 
-Count = Annotated[Int, Field(ge=2), worded("must be an integer >= 2, got {value}")]
+# no printable board has more than 100 squares or tags to a side
+Count = Annotated[Int, Field(ge=2, le=100), worded("must be an integer >= 2 and <= 100, got {value}")]
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,7 @@ class Board:
     type: Annotated[BoardType, worded(f"is {{value}}, expected one of {', '.join(BOARD_TYPES)}")]
     cols: Count
     rows: Count
-    square: Annotated[Float, Field(gt=0), worded("must be a length in metres > 0, got {value}"),
+    square: Annotated[Float, Field(ge=0.001), worded("must be a length in metres >= 0.001 (1 mm), got {value}"),
                       AfterValidator(_in_metres)]
     marker: Annotated[Float, Field(ge=0), worded("must be a length in metres >= 0, got {value}")] = 0.0
     dictionary: Annotated[Str, worded("must be a string, got {value}")] = ""
@@ -207,7 +208,17 @@ class TagLayout:
 
 def load_tags(path: str | os.PathLike) -> TagLayout:
     """Read and validate tags.json ({"family", "size", "tags": {"ID": [[x,y,z] x 4]}})."""
-    return tags_from_dict(_read(Path(path), json.loads, "tag layout"), str(path))
+
+    def unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        # json.loads keeps the last of two equal keys without a word: a tag given twice is an error
+        keys = [k for k, _ in pairs]
+        twice = next((k for k in keys if keys.count(k) > 1), None)
+        if twice is not None:
+            raise BoardError(f"{path}: key {twice!r} is given twice")
+        return dict(pairs)
+
+    return tags_from_dict(_read(Path(path), lambda text: json.loads(text, object_pairs_hook=unique_keys),
+                                "tag layout"), str(path))
 
 
 @dataclass(frozen=True)
@@ -223,6 +234,7 @@ class _TagsFile:
 def tags_from_dict(doc: dict, source: str = "tags.json") -> TagLayout:
     """Validate a tag layout; errors name the file and the key."""
     layout = validate(_TagsFile, doc, source, BoardError, _line)
+    family_size = len(get_dictionary(TAG_FAMILIES[layout.family]).bytesList)
     ids, corners = [], []
     for key, value in layout.tags.items():
         try:
@@ -230,6 +242,10 @@ def tags_from_dict(doc: dict, source: str = "tags.json") -> TagLayout:
             c = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
             raise BoardError(f"{source}: key 'tags.{key}' is not an integer id with 4 [x, y, z] corners") from None
+        if not 0 <= tag_id < family_size:
+            raise BoardError(f"{source}: key 'tags.{key}' is not a tag of {layout.family} (ids 0..{family_size - 1})")
+        if tag_id in ids:
+            raise BoardError(f"{source}: key 'tags.{key}' is tag {tag_id} again")
         if c.shape != (4, 3) or not np.isfinite(c).all():
             raise BoardError(f"{source}: key 'tags.{key}' must hold 4 corners [x, y, z], got shape {c.shape}")
         sides = np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)

@@ -14,7 +14,7 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from manus_core.errors import DetectionError
+from manus_core.errors import DetectionError, TakeError
 from manus_core.take import Take
 
 VIDEO_SUFFIXES = {".mkv", ".mp4", ".avi", ".mov", ".webm"}
@@ -128,6 +128,16 @@ def read_frames(source: FrameSource) -> Iterator[tuple[int, np.ndarray]]:
         if image is None:
             raise DetectionError(f"{source.paths[index]}: not a readable image")
         yield index, image
+
+
+def unreadable(source: FrameSource) -> str | None:
+    """Why a source's frames cannot be read (its first frame is read to find out), or None: what
+    lets a calibration leave one camera out instead of stopping in the middle of detection."""
+    try:
+        first = next(read_frames(FrameSource(source.paths, (0,), source.arrays, source.camera)), None)
+    except (DetectionError, TakeError) as exc:
+        return str(exc)
+    return None if first is not None else f"{source.name}: no frame can be read"
 
 
 def expand_inputs(paths: Iterable[str | os.PathLike]) -> FrameSource:

@@ -71,8 +71,10 @@ def rig_from_state(ids, state: BundleState, sizes, stats: dict[str, CameraStats]
 
 
 def require_all(names: list[str], problems: dict[str, str], allow_partial: bool) -> None:
-    """Raise, naming every camera and why, unless allow_partial (then the result leaves them out)."""
-    if problems and not allow_partial:
+    """Raise, naming every camera and why, unless allow_partial (then the result leaves them out)
+    and some camera is left."""
+    left = len(set(names) - set(problems))
+    if problems and (not allow_partial or not left):
         listed = "; ".join(f"camera {n}: {m}" for n, m in problems.items())
-        raise ExtrinsicsError(f"{len(problems)} of {len(names)} cameras cannot be calibrated ({listed}); "
-                              f"fix the input or pass --allow-partial for a result without them")
+        hint = "fix the input" + ("" if allow_partial else " or pass --allow-partial for a result without them")
+        raise ExtrinsicsError(f"{len(problems)} of {len(names)} cameras cannot be calibrated ({listed}); {hint}")

@@ -34,7 +34,7 @@ from .detect import Detection, TagDetector, detect_cameras
 from .diagnose import diagnose_board
 from .features import scene_anchors
 from .formats import load_cameras, save_cameras
-from .frames import FrameSource, read_frames, subsample
+from .frames import FrameSource, read_frames, subsample, unreadable
 from .intrinsics import calibrate_intrinsics
 from .report import build_report, cross_check, scale_check, write_report
 from .result import RigCalibration, require_all
@@ -83,6 +83,9 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
     cams = list(sources)
     fixed = _fixed_intrinsics(intrinsics, cams, allow_partial)
     problems: dict[str, str] = {c: "not in the intrinsics file" for c in cams if fixed is not None and c not in fixed}
+    # an unreadable video is found now, in this process, so that it costs its camera only
+    problems.update({c: why for c, src in sources.items() if c not in problems and (why := unreadable(src))})
+    require_all(cams, problems, allow_partial)
     checks: dict = {}
     inputs = {"cameras": len(cams), "method": method, "take": str(take) if take else None}
 
@@ -107,7 +110,7 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
             raise CalibrationError("no camera has intrinsics: pass --intrinsics FILE or a --board seen in the take"
                                    + (f" ({'; '.join(f'{c}: {m}' for c, m in problems.items())})" if problems else ""))
         require_all(cams, problems, allow_partial)
-        tag_src = {c: subsample(sources[c], tag_frames) for c in cams if c in intr}
+        tag_src = {c: subsample(sources[c], tag_frames) for c in cams if c in intr and c not in problems}
         detectors = {c: TagDetector(layout.dictionary, K=intr[c][0], dist=intr[c][1]) for c in tag_src}
         tag_dets, tag_sizes = detect_cameras(tag_src, detectors, workers, progress)
         _check_sizes(tag_sizes, intr)
@@ -125,7 +128,7 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
                 initial = {c: _pose(colmap_rig, c) for c in colmap_rig.ids}
         if method == "colmap":
             result = evaluate_tag_rig(colmap_rig, tag_dets, layout, "colmap", extra=inputs["colmap"])
-            lost = {c: "not registered by COLMAP" for c in intr if c not in colmap_rig.ids}
+            lost = {c: "not registered by COLMAP" for c in tag_src if c not in colmap_rig.ids}
             problems.update(lost)
             require_all(cams, problems, allow_partial)
             result = _with_missing(result, problems)
@@ -183,7 +186,6 @@ def _take_sources(path: Path) -> tuple[dict[str, FrameSource], dict[str, Callabl
     groups = frame_groups(take)
     sources, sync = {}, {}
     for c, cam in enumerate(groups.cameras):
-        take.video_path(cam)  # a missing video is named now, not in a worker
         sources[cam] = FrameSource((str(path),), camera=cam)
         count = take.frame_count(cam)
         key = len(groups.frame_ns) + c * count + np.arange(count, dtype=np.int64)

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import AfterValidator, Field
 
 from manus_core.errors import BoneLengthError
 from manus_core.fileio import write_atomic
@@ -157,15 +157,32 @@ def save_subject(path: str | Path, subject: str, bones: BoneLengths, takes: Sequ
     return path
 
 
+# A bone of a human hand, a child's to a large adult's, is 5 mm to 15 cm long; a length of 45 is
+# a file in millimetres.
+BONE_RANGE_M = (0.005, 0.15)
+
+
+def _in_order(names: tuple[str, ...]) -> tuple[str, ...]:
+    if names != BONE_NAMES:
+        raise ValueError("other bones or another order")
+    return names
+
+
 @dataclass(frozen=True)
 class _SubjectFile:
-    """A subject file as written (subject, units, bone_names and software are not read back)."""
+    """A subject file as written (subject and software are not read back)."""
 
     version: Annotated[Literal[SUBJECT_FORMAT_VERSION],
                        worded(f"is {{value}}, this software reads {SUBJECT_FORMAT_VERSION}")]
-    bone_lengths: Annotated[tuple[Annotated[Float, Field(gt=0)], ...], PerBone,
-                            worded(f"must be {len(BONES)} positive numbers, got {{value}}")]
-    spread_m: Annotated[tuple[Float | None, ...], PerBone] = (None,) * len(BONES)
+    bone_lengths: Annotated[tuple[Annotated[Float, Field(ge=BONE_RANGE_M[0], le=BONE_RANGE_M[1])], ...], PerBone,
+                            worded(f"must be {len(BONES)} positive lengths in metres, each in "
+                                   f"[{BONE_RANGE_M[0]:g}, {BONE_RANGE_M[1]:g}], got {{value}}")]
+    units: Annotated[Literal["m"], worded("is {value}; the lengths must be in metres ('m')")] = "m"
+    # the lengths are in this order; a file with other bones (or another order) cannot be used
+    bone_names: Annotated[tuple[Str, ...], AfterValidator(_in_order),
+                          worded(f"must list the {len(BONES)} bones in the order {BONE_NAMES[0]} ... "
+                                 f"{BONE_NAMES[-1]}, got {{value}}")] = BONE_NAMES
+    spread_m: Annotated[tuple[Annotated[Float, Field(ge=0)] | None, ...], PerBone] = (None,) * len(BONES)
     samples: Annotated[tuple[Annotated[Int, Field(ge=0)], ...], PerBone] = (0,) * len(BONES)
     estimated: tuple[Annotated[Literal[BONE_NAMES], worded("{value} is not a bone name (wrist-thumb_cmc ... "
                                                            "pinky_dip-pinky_tip)")], ...] = ()

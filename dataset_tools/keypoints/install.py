@@ -101,7 +101,10 @@ def installed_manifest(name: str) -> dict | None:
     directory = bundle_dir(name)
     try:
         manifest = json.loads((directory / "manifest.json").read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
+    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    # a manifest that is not ours (edited, another tool's) counts as not installed: install again
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("files", {}), dict):
         return None
     if not all((directory / f).is_file() for f in manifest.get("files", {})):
         return None

@@ -38,7 +38,7 @@ import numpy as np
 from pydantic import Field
 
 from manus_core.errors import ModelError
-from manus_core.validation import Bool, Float, Int, Str, validate, worded
+from manus_core.validation import CLOSED, Bool, Float, Int, Str, between, validate, worded
 
 from . import decoding
 from .install import model_path
@@ -148,17 +148,22 @@ class ModelSpec:
 
 
 Positive = Annotated[Float, Field(gt=0)]
+InputSide = Annotated[Int, Field(ge=16, le=4096)]   # pixels: no hand keypoint network takes less or more
 
 
 @dataclass(frozen=True)
 class _SimccTable:
-    split_ratio: Positive = 2.0
+    __pydantic_config__ = CLOSED   # unknown keys are errors
+
+    split_ratio: between(Float, 0, 16, "bins per input pixel", low_open=True) = 2.0
     outputs: tuple[Str, ...] = ()
     softmax: Bool = False
 
 
 @dataclass(frozen=True)
 class _HeatmapTable:
+    __pydantic_config__ = CLOSED   # unknown keys are errors
+
     output: Str = ""
     refine: Literal[decoding.REFINES] = "quarter"
     sigmoid: Bool = False
@@ -166,17 +171,19 @@ class _HeatmapTable:
 
 @dataclass(frozen=True)
 class _SpecFile:
-    """A spec file as written (keys other than these are ignored); load_spec makes it a ModelSpec."""
+    """A spec file as written; load_spec makes it a ModelSpec."""
+
+    __pydantic_config__ = CLOSED   # unknown keys are errors: a misspelt key would be ignored
 
     kind: Literal["simcc", "heatmap"]
-    model: Str
-    input_size: Annotated[tuple[Annotated[Int, Field(gt=0)], Annotated[Int, Field(gt=0)]],
-                          worded("expected [width, height] in pixels, got {value}")]
+    model: Annotated[Str, Field(min_length=1)]
+    input_size: Annotated[tuple[InputSide, InputSide],
+                          worded("expected [width, height] in pixels, each in 16..4096, got {value}")]
     layout: Literal["NCHW", "NHWC"] = "NCHW"
     color: Literal["RGB", "BGR"] = "RGB"
     mean: tuple[Float, Float, Float] = (0.0, 0.0, 0.0)
     std: tuple[Positive, Positive, Positive] = (1.0, 1.0, 1.0)
-    box_scale: Positive = 1.25
+    box_scale: between(Float, 1, 4) = 1.25   # the crop is the hand box enlarged by this
     keypoints: Annotated[tuple[Annotated[Int, Field(ge=-1)], ...], Field(min_length=NUM_JOINTS, max_length=NUM_JOINTS),
                          worded(f"expected {NUM_JOINTS} model joint indices (-1 for none) in the MediaPipe order, "
                                 "got {value}")] = tuple(range(NUM_JOINTS))
@@ -194,6 +201,14 @@ def load_spec(path: str | Path) -> ModelSpec:
     except tomllib.TOMLDecodeError as exc:
         raise ModelError(f"{path}: not valid TOML ({exc})") from None
     spec = validate(_SpecFile, doc, str(path), ModelError)
+    given = [k for k in spec.keypoints if k >= 0]
+    if not given:
+        raise ModelError(f"{path}: keypoints: no joint is given (all -1)")
+    twice = next((k for k in given if given.count(k) > 1), None)
+    if twice is not None:
+        joints = [JOINT_NAMES[j] for j, k in enumerate(spec.keypoints) if k == twice]
+        raise ModelError(f"{path}: keypoints: model joint {twice} is given for {' and '.join(joints)}; "
+                         "each model joint is one MediaPipe joint")
     if spec.kind == "simcc":
         extra = dict(split_ratio=spec.simcc.split_ratio, outputs=spec.simcc.outputs, softmax=spec.simcc.softmax)
     else:

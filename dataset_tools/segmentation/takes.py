@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import h5py
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from manus_core.dataset import add_arrays
+from manus_core.dataset import add_arrays, read_dataset
 from manus_core.errors import SegmentationError
 from manus_core.fileio import write_atomic
 from manus_core.progress import Progress, silent
+from manus_core.provenance import differences, stage_inputs, take_identity
 from manus_core.take import Take
 
 from ..sync import frame_groups
@@ -57,11 +60,11 @@ def sample_frames(take: Take, cam: str, count: int = 5) -> np.ndarray:
     return np.stack([take.read_frame(cam, int(k)) for k in np.unique(np.linspace(0, n - 1, count).astype(int))])
 
 
-def backgrounds_for(take: Take, background: Take, report: dict) -> list[BackgroundModel | None]:
-    """One background per camera of `take`; a camera missing from the background take gets None
-    and a warning in the report (its masks stay empty)."""
+def backgrounds_for(take: Take, cameras: Sequence[str], background: Take, report: dict) -> list[BackgroundModel | None]:
+    """One background per camera `cameras` of `take`; a camera missing from the background take
+    gets None and a warning in the report (its masks stay empty)."""
     out = []
-    for cam in take.cameras:
+    for cam in cameras:
         if cam not in background.cameras or background.frame_count(cam) == 0:
             report["warnings"].append(f"camera {cam}: no frames in background take {background.path}; no masks")
             out.append(None)
@@ -85,13 +88,35 @@ def _object_frames(obj: Take, cameras, backgrounds) -> tuple[np.ndarray, list]:
     return np.stack(images), bgs
 
 
+def take_cameras(take: Take, rig: CameraRig, wanted: Sequence[str] | None = None) -> list[str]:
+    """The cameras of `take` to work on, in take.json order: `wanted`, or by default every camera
+    of the take that the calibration has (a partial calibration, calibrate --allow-partial,
+    leaves some out). A camera asked for by name must be in the take and calibrated, and at least
+    two must remain; SegmentationError names the cameras otherwise."""
+    if wanted is not None:
+        unknown = [c for c in wanted if c not in take.cameras]
+        if unknown:
+            raise SegmentationError(f"{take.path}: no camera {', '.join(unknown)} in this take "
+                                    f"(cameras: {', '.join(take.cameras)})")
+    used = [c for c in take.cameras if c in rig.ids and (wanted is None or c in wanted)]
+    uncalibrated = [c for c in wanted or () if c not in rig.ids]
+    if uncalibrated:
+        raise SegmentationError(f"{take.path}: cameras {', '.join(uncalibrated)} are not in the calibration")
+    if len(used) < 2:
+        raise SegmentationError(f"{take.path}: {len(used)} of its cameras ({', '.join(used) or 'none'}) in the "
+                                f"calibration; masks need at least 2")
+    return used
+
+
 def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, object_path: Path | None = None,
                  swatch=None, every: int = 1, progress: Progress = silent,
-                 masks: Path | None = None) -> Segmentation:
+                 masks: Path | None = None, cameras: Sequence[str] | None = None) -> Segmentation:
     """Masks of a take: hand and object in every frame group, and in a canonical take the paint
-    (its colour from the object take or `swatch` B,G,R). The groups are those of the take's sync report (as annotate's), every `every`-th; the paint is
-    segmented in the middle group of a canonical take (the hand holds still there). progress
-    ("segment", groups done, groups).
+    (its colour from the object take or `swatch` B,G,R). The groups are those of the take's sync
+    report (as annotate's), every `every`-th; the paint is segmented in the middle group of a
+    canonical take (the hand holds still there). progress ("segment", groups done, groups).
+    cameras: those to segment (take_cameras; by default the take's calibrated cameras, and a
+    warning names those a partial calibration leaves out).
 
     With `masks`, a folder of masks made by another tool, the hand and object masks are read from
     MASKS/hand/CAM/FRAME.png and MASKS/object/CAM/FRAME.png (FRAME: the camera's frame index, 6
@@ -102,19 +127,21 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
     take = Take(take_path)
     kind = take.meta.get("kind")
     report: dict = {"warnings": []}
-    missing = [c for c in take.cameras if c not in rig.ids]
-    if missing:
-        raise SegmentationError(f"{take.path}: cameras {', '.join(missing)} are not in the calibration")
-    rig = rig.subset(list(take.cameras))
+    cams = take_cameras(take, rig, cameras)
+    uncalibrated = [c for c in take.cameras if c not in rig.ids]
+    if uncalibrated:
+        report["warnings"].append(f"cameras {', '.join(uncalibrated)} are not in the calibration: left out "
+                                  f"(masks of {len(cams)} of {len(take.cameras)} cameras)")
+    rig = rig.subset(cams)
     if background_path is not None:
-        backgrounds = backgrounds_for(take, Take(background_path), report)
+        backgrounds = backgrounds_for(take, cams, Take(background_path), report)
     elif masks is not None:
-        backgrounds = [None] * len(take.cameras)
+        backgrounds = [None] * len(cams)
     else:
         raise SegmentationError(f"{take.path}: no background take (the empty cube) and no masks to use instead")
     model = key = None
     if object_path is not None:
-        images, bgs = _object_frames(Take(object_path), take.cameras, backgrounds)
+        images, bgs = _object_frames(Take(object_path), cams, backgrounds)
         # a canonical take has no object in it, and the paint on its hand has the (painted)
         # object's colour: there every foreground pixel is hand; in the object take every one is
         # object (a colour split would give its skin-coloured shading to a hand that is not there)
@@ -124,14 +151,15 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
         key = PaintKey.from_swatch(swatch)
     groups = frame_groups(take)
     report["frame_groups"] = groups.description
-    frame_ns, frame_index = groups.frame_ns[::every], groups.frame_index[::every]
+    columns = [groups.cameras.index(c) for c in cams]
+    frame_ns, frame_index = groups.frame_ns[::every], groups.frame_index[::every][:, columns]
     w, h = (int(v) for v in rig.size[0])
     if masks is None:
         hand, obj = _segment_groups(take, rig, backgrounds, model, frame_index, (h, w), progress)
     else:
-        hand = load_png_masks(Path(masks) / "hand", take.cameras, frame_index, (h, w))
+        hand = load_png_masks(Path(masks) / "hand", cams, frame_index, (h, w))
         objects = Path(masks) / "object"
-        obj = load_png_masks(objects, take.cameras, frame_index, (h, w)) if objects.is_dir() else np.zeros_like(hand)
+        obj = load_png_masks(objects, cams, frame_index, (h, w)) if objects.is_dir() else np.zeros_like(hand)
         progress("segment", len(frame_index), len(frame_index))
     paint = middle = None
     if kind == "canonical":
@@ -140,27 +168,27 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
         else:
             middle = len(frame_ns) // 2
             images = np.stack([take.read_frame(cam, int(max(frame_index[middle, c], 0)))
-                               for c, cam in enumerate(take.cameras)])
+                               for c, cam in enumerate(cams)])
             lit = [None if b is None else b.at_brightness(image) for b, image in zip(backgrounds, images)]
             paint, paint_report = paint_masks(images, hand[middle], key, backgrounds=lit)
             report["paint"] = paint_report
             report["warnings"].extend(paint_report["warnings"])
     for message in report["warnings"]:
         warnings.warn(message, stacklevel=2)
-    return Segmentation(tuple(take.cameras), frame_ns, frame_index, hand, obj, paint, middle, report)
+    return Segmentation(tuple(cams), frame_ns, frame_index, hand, obj, paint, middle, report)
 
 
 def _segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_index: np.ndarray,
                     shape: tuple[int, int], progress: Progress) -> tuple[np.ndarray, np.ndarray]:
-    """Hand and object masks (T,C,H,W) of the frame groups frame_index (T,C)."""
+    """Hand and object masks (T,C,H,W) of the frame groups frame_index (T,C), cameras of `rig`."""
     h, w = shape
     object_take = take.meta.get("kind") == "object"
-    hand = np.zeros((len(frame_index), len(take.cameras), h, w), bool)
+    hand = np.zeros((len(frame_index), len(rig), h, w), bool)
     obj = np.zeros_like(hand)
     for t in range(len(frame_index)):
-        images = np.zeros((len(take.cameras), h, w, 3), np.uint8)
+        images = np.zeros((len(rig), h, w, 3), np.uint8)
         present = frame_index[t] >= 0
-        for c, cam in enumerate(take.cameras):
+        for c, cam in enumerate(rig.ids):
             if present[c]:
                 images[c] = take.read_frame(cam, int(frame_index[t, c]))
         bgs = [b if p else None for b, p in zip(backgrounds, present)]
@@ -170,28 +198,48 @@ def _segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_
     return hand, obj
 
 
-def check_output(path: Path, key: str, force: bool) -> None:
-    """Refuse to replace take `key`'s masks in DATASET.h5 unless `force` (checked before the work)."""
+def segment_inputs(take: Take, rig: CameraRig, cameras: Sequence[str], background: Path | None,
+                   object_take: Path | None, swatch, every: int, masks: Path | None) -> dict:
+    """What a take's masks are made from (manus_core.provenance): the take's recording, the
+    calibration of the cameras used (whatever file it came from), the background and object
+    takes' recordings, and the settings."""
+    calibration = json.dumps(rig.subset(cameras).to_json(), sort_keys=True).encode()
+    return stage_inputs(take, calibration_sha256=hashlib.sha256(calibration).hexdigest(), cameras=list(cameras),
+                        background=_recording(background), object_take=_recording(object_take),
+                        swatch=None if swatch is None else [float(v) for v in swatch], every=int(every),
+                        masks=None if masks is None else str(Path(masks).resolve()))
+
+
+def _recording(path: Path | None) -> str | None:
+    """Another take an input is read from, as its folder and the start of its frames.csv hash."""
+    if path is None:
+        return None
+    take = Take(path)
+    return f"{take.path.resolve()} (frames.csv {take_identity(take)['frames_csv_sha256'][:12]})"
+
+
+def stale_masks(path: Path, key: str, inputs: dict) -> list[str] | None:
+    """Why take `key`'s masks in DATASET.h5 are not those `inputs` make ([]: they are current;
+    None: the take has no masks there). Checked before the work."""
     path = Path(path)
-    if force or not path.exists():
-        return
-    try:
-        with h5py.File(path, "r") as f:
-            done = f"{key}/masks/hand" in f
-    except OSError as err:
-        raise SegmentationError(f"{path}: not a readable HDF5 file ({err})") from None
-    if done:
-        raise SegmentationError(f"{path}: take {key} already has masks; --force replaces them")
+    if not path.exists():
+        return None
+    dataset = read_dataset(path)
+    if key not in dataset or "segment" not in dataset.stages(key):
+        return None
+    return differences(dataset.provenance(key, "segment"), inputs)
 
 
-def write_masks(path: Path, key: str, result: Segmentation, attrs: dict) -> None:
-    """Add masks/hand, masks/object, masks/frame_ns (and paint/masks) to take `key` of
-    DATASET.h5, atomically (dataset.add_arrays). The masks' own frame groups are stored: with
-    --every they are a subset of the annotation's."""
-    arrays = {"masks/hand": result.hand, "masks/object": result.object, "masks/frame_ns": result.frame_ns}
+def write_masks(path: Path, key: str, result: Segmentation, attrs: dict,
+                arrays: dict[str, np.ndarray] | None = None) -> None:
+    """Add masks/hand, masks/object, masks/frame_ns (and paint/masks, and the other `arrays` of
+    segment's part, e.g. paint/contact) to take `key` of DATASET.h5, atomically, in one write
+    (dataset.add_arrays; no other stage's arrays are touched). The masks' own frame groups are
+    stored: with --every they are a subset of the annotation's."""
+    out = {"masks/hand": result.hand, "masks/object": result.object, "masks/frame_ns": result.frame_ns}
     if result.paint is not None:
-        arrays["paint/masks"] = result.paint
-    add_arrays(path, key, arrays, {"mask_cameras": list(result.cameras), **attrs})
+        out["paint/masks"] = result.paint
+    add_arrays(path, key, {**out, **(arrays or {})}, {"mask_cameras": list(result.cameras), **attrs}, stage="segment")
 
 
 def write_overlays(folder: Path, take: Take, result: Segmentation, t: int | None = None) -> list[Path]:

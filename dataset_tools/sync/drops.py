@@ -29,7 +29,8 @@ def check_sequence(seq: np.ndarray, t_device: np.ndarray, t_host: np.ndarray,
     """Drops from sequence gaps; duplicate and non-monotonic timestamps.
 
     A gap larger than `max_gap` (default: max(1000, rows)) is a discontinuity, not that many drops.
-    Frames lost before the first or after the last received one leave no gap and are not seen.
+    Frames lost before the first or after the last received one leave no gap: `end_drops` and
+    `tick_edge_drops` find those from the take's end and the other cameras.
     """
     seq = np.asarray(seq, np.int64)
     d = np.asarray(t_device, np.int64)
@@ -62,3 +63,30 @@ def check_sequence(seq: np.ndarray, t_device: np.ndarray, t_host: np.ndarray,
     backwards_host = int(np.count_nonzero(np.diff(h) < 0))
     return SequenceCheck(order, dropped, discontinuities, duplicate_seq, reordered, duplicate_dev,
                          backwards_dev, backwards_host)
+
+
+def end_drops(last_host_ns: np.ndarray, interval_ns: np.ndarray, end_ns: int) -> np.ndarray:
+    """Frames each streaming camera lost after its last received one, (C,) int64.
+
+    The recorder reads a camera until a frame arrives at or after the take's end (`end_ns`) and
+    keeps that frame, so a camera whose last frame arrived earlier lost the ones after it, up to
+    the one that would have arrived at the end: one per frame interval (arrival jitter is far
+    below an interval). NaN (a camera without frames) counts none."""
+    gap = end_ns - np.asarray(last_host_ns, np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.where(gap > 0, np.ceil(gap / np.asarray(interval_ns, np.float64)), 0).astype(np.int64)
+
+
+def tick_edge_drops(frame_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frames each triggered camera lost before its first and after its last received one, from
+    frame groups (T,C) of one frame per trigger: every camera was triggered on every tick from the
+    take's first group to its last, so the ticks outside a camera's own first..last are its
+    losses (none for a camera without frames)."""
+    present = np.asarray(frame_index) >= 0
+    has = present.any(axis=0)
+    ticks = np.flatnonzero(present.any(axis=1))
+    if not ticks.size:
+        return np.zeros(present.shape[1], np.int64), np.zeros(present.shape[1], np.int64)
+    first = np.argmax(present, axis=0)
+    last = present.shape[0] - 1 - np.argmax(present[::-1], axis=0)
+    return np.where(has, first - ticks[0], 0), np.where(has, ticks[-1] - last, 0)

@@ -19,6 +19,7 @@ from manus_core.progress import Progress, silent
 from manus_core.take import Take
 
 from .analysis import SYNC_MODES, SyncResult, SyncSettings, analyze_sync
+from .files import camera_entries, check_files, lost_cameras
 from .grouping import group_frames
 from .groups_file import GROUPS_FILE, HOST_METHOD, SYNC_METHOD, TakeGroups, load_groups, save_groups
 from .optical import BrightnessFn, Flash, led_flashes, optical_check
@@ -31,14 +32,12 @@ def _take_latency(meta: Mapping, cams: Sequence[str]) -> dict[str, float]:
     """Per camera latency floor from take.json camera objects: exposure_us / 2 + latency_ms (end of
     exposure -> earliest host arrival), where latency_ms is given (at the top or in "sim")."""
     out = {}
-    for entry in meta.get("cameras", []):
-        if not isinstance(entry, Mapping) or str(entry.get("id")) not in cams:
-            continue
+    for cam, entry in camera_entries(meta).items():
         lat = entry.get("latency_ms", (entry.get("sim") or {}).get("latency_ms"))
-        if isinstance(lat, (int, float)):
+        if cam in cams and isinstance(lat, (int, float)):
             exposure = entry.get("exposure_us")
             half_exposure = float(exposure) * 500 if isinstance(exposure, (int, float)) else 0.0
-            out[str(entry["id"])] = float(lat) * 1e6 + half_exposure
+            out[cam] = float(lat) * 1e6 + half_exposure
     return out
 
 
@@ -47,6 +46,14 @@ def _take_t0(meta: Mapping) -> int | None:
         if isinstance(meta.get(key), int):
             return int(meta[key])
     return None
+
+
+def _take_end(meta: Mapping) -> int | None:
+    """When the recorder ended a take that ran to its end (t0_ns + duration_s), else None."""
+    t0, duration = _take_t0(meta), meta.get("duration_s")
+    if meta.get("status") != "complete" or t0 is None or not isinstance(duration, (int, float)):
+        return None
+    return t0 + int(round(duration * 1e9))
 
 
 def _open(path: Take | str | Path) -> Take:
@@ -93,7 +100,7 @@ def _analyze(take: Take, latency_ns: Mapping[str, float] | None,
     frames = {cam: take.camera_frames(cam) for cam in take.cameras}
     latency = {**_take_latency(take.meta, take.cameras), **(latency_ns or {})}
     result = analyze_sync(frames, take.fps, sync=sync, t0_ns=_take_t0(take.meta), latency_ns=latency,
-                          settings=settings)
+                          settings=settings, end_ns=_take_end(take.meta), lost=lost_cameras(take.meta))
     return result, latency
 
 
@@ -147,7 +154,7 @@ def _validate(take: Take, latency_ns: Mapping[str, float] | None, optical: bool,
     flashes = take_flashes(take) if optical else []
     check = optical_check(result.cameras, flashes, take_brightness(take), t0_ns=result.t0_ns,
                           progress=progress) if flashes else None
-    return result, build_report(result, check, take=take.path.name), latency
+    return result, build_report(result, check, take=take.path.name, files=check_files(take)), latency
 
 
 def analyze_take(path: Take | str | Path, *, latency_ns: Mapping[str, float] | None = None, optical: bool = True,

@@ -43,25 +43,43 @@ from manus_core.errors import AnnotateError
               help="1-euro filter: minimum cutoff (Hz).")
 @click.option("--beta", type=click.FloatRange(0), default=10.0, show_default=True,
               help="1-euro filter: speed coefficient for angles (1/rad).")
-@click.option("--force", is_flag=True, help="Recompute takes already in the output (or saved by an interrupted run).")
+@click.option("--cameras", default=None, metavar="A,B,...",
+              help="The cameras to use (each in every take and the calibration); default: every camera of a "
+                   "take that the calibration has.")
+@click.option("--force", is_flag=True,
+              help="Recompute takes already in the output (or saved by an interrupted run) even when their inputs "
+                   "are the same. Their masks, paint and contacts are kept.")
 def command(takes: tuple[Path, ...], calib: Path, output: Path, keypoints: str, model: str, device: str,
             bones: Path | None, workers: int, scheduler: str | None, sim_noise_px: float, sim_outliers: float,
-            sim_seed: int, threshold_px: float, min_cutoff: float, beta: float, force: bool) -> None:
+            sim_seed: int, threshold_px: float, min_cutoff: float, beta: float, cameras: str | None,
+            force: bool) -> None:
     """Annotate TAKES into a dataset file: frame groups, 2D keypoints, triangulation, the subject's
     bone lengths, inverse kinematics on the 26-DOF hand, 1-euro filter (docs/annotate.md).
 
-    Takes already in OUTPUT, or finished by an interrupted run, are kept and not computed again
-    (unless --force). Hand takes of a session give the subject's bone lengths, saved as
+    Takes already in OUTPUT, or finished by an interrupted run, are kept when every input that made
+    them is the same (the take's frames, calibration, cameras, keypoints, frame groups, bones,
+    settings), and redone otherwise, saying why. Cameras the calibration lacks are left out. Hand takes of a session give the subject's bone lengths, saved as
     SESSION/subjects/SUBJECT.json; give them in the same run or annotate them first.
     """
     options = AnnotateOptions(keypoints=keypoints, model=model, device=device, sim_noise_px=sim_noise_px,
                               sim_outlier_rate=sim_outliers, sim_seed=sim_seed, threshold_px=threshold_px,
                               min_cutoff=min_cutoff, beta=beta)
+    chosen = [c.strip() for c in cameras.split(",") if c.strip()] if cameras is not None else None
+    if chosen == []:
+        raise AnnotateError(f"--cameras {cameras!r}: no camera named (give A,B,...)")
     start = time.perf_counter()
     with Bars(unit="take") as bars:
         summary = annotate(takes, calib, output, options, workers=workers, scheduler=scheduler, force=force,
-                           bones=bones, progress=bars)
+                           bones=bones, cameras=chosen, progress=bars)
     elapsed = time.perf_counter() - start
+    for key, cams in summary.left_out.items():
+        why = "not chosen by --cameras" if chosen else f"not in the calibration {calib}"
+        click.echo(f"{key}: left out camera(s) {', '.join(cams)} ({why})", err=True)
+    if summary.resumed:
+        click.echo(f"kept (same inputs): {', '.join(summary.resumed)}")
+    for key, reasons in summary.redone.items():
+        done = "redone" if key in summary.annotated else "failed to redo (its earlier annotation stays)"
+        click.echo(f"{done} {key}: {'; '.join(reasons)}")
     for key, why in summary.failed.items():
         click.echo(f"failed: {key}: {why}", err=True)
     fitted = 100.0 * summary.frames_fitted / max(summary.frames, 1)

@@ -91,6 +91,8 @@ def rig(take: Path, tags_file, board_file, method, intrinsics_file, allow_partia
                                intrinsics=intrinsics_file, allow_partial=allow_partial, tag_frames=tag_frames,
                                board_frames=board_frames, refine_tags=refine_tags, workers=workers, output=output,
                                force=force, progress=bars)
+    for cam, why in result.missing.items():
+        click.echo(f"  left out: camera {cam}: {why}", err=True)
     status = "PARTIAL, " + ", ".join(result.missing) + " left out" if result.partial else "complete"
     scene = result.extra.get("scene_points")
     if scene:  # millimetres rather than tenths: say which cameras to aim at more tags

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from manus_capture.splat.hand import HandGaussians
 from manus_core.dataset import read_dataset
 from manus_core.errors import EvaluateError
 from manus_core.fileio import write_atomic
+from manus_core.provenance import provenance_attrs
 
 
 @click.command("contacts", context_settings={"help_option_names": ["-h", "--help"]})
@@ -50,7 +52,13 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     data = read_dataset(dataset)
     if key not in data:
         raise EvaluateError(f"{dataset}: no take {key!r} (takes: {', '.join(data.takes) or 'none'})")
-    angles = data[key].joint_angles
+    ann = data[key]   # DatasetError, one line naming the take, when it has no annotation
+    angles = ann.joint_angles
+    annotation = data.provenance(key, "annotate")
+    # the recording the poses came from: a later re-recording of the take makes these contacts stale
+    inputs = {"take": None if annotation is None else annotation.get("take"),
+              "hand_model_sha256": _sha256(hand_path), "object_model_sha256": _sha256(object_path),
+              "tau_m": tau, "soft": soft}
     gaussians, extra, meta = load_checkpoint(hand_path)
     if meta.get("kind") != "hand":
         raise EvaluateError(f"{hand_path}: a {meta.get('kind')!r} checkpoint, not a hand")
@@ -59,9 +67,13 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     if meta.get("kind") != "object":
         raise EvaluateError(f"{object_path}: a {meta.get('kind')!r} checkpoint, not an object")
     maps = model_contacts(hand, angles, obj, tau, soft, device)
-    write_contacts(dataset, key, maps, {"contact_hand_model": str(hand_path), "contact_object_model": str(object_path)})
+    write_contacts(dataset, key, maps, {"contact_hand_model": str(hand_path), "contact_object_model": str(object_path),
+                                        **provenance_attrs("contacts", inputs)})
     if renders is not None:
         rig = load_cameras(calib)
+        uncalibrated = [c for c in ann.cameras if c not in rig.ids]
+        if uncalibrated:
+            click.echo(f"note: cameras {', '.join(uncalibrated)} of {key} are not in {calib}: not rendered", err=True)
         hold = int(np.argmax(maps.instant.sum(axis=1)))
         with Bars(unit="view") as bars:
             bars("render", 0, len(rig))
@@ -74,3 +86,7 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     click.echo(f"contacts: {key}: {len(angles)} frames, {touched}/{len(hand)} hand Gaussians and "
                f"{int((maps.object_accumulated > 0.5).sum())}/{len(obj)} object Gaussians in contact "
                f"(tau {tau * 1000:g} mm) -> {dataset} ({time.perf_counter() - start:.1f} s)")
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 import click
+import h5py
 
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.builder import ModelInputs
@@ -66,22 +67,33 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
     carried onto the hand in the canonical pose, rendered into the ground-truth views, thresholded
     and compared with the paint masks (IoU and F1 per view, as in the MANUS contact table). The
     capsule-template baseline is scored the same way. Exit code 2 on unusable input."""
-    import h5py
-
-
     start = time.perf_counter()
     data = read_dataset(dataset)
     for key in (grasp, canonical):
         if key not in data:
             raise EvaluateError(f"{dataset}: no take {key!r} (takes: {', '.join(data.takes) or 'none'})")
+    # DatasetError, one line naming the take, for a take without annotation
+    grasp_ann, canonical_ann = data[grasp], data[canonical]
     with h5py.File(dataset, "r") as f:
         if "paint/masks" not in f[canonical]:
             raise EvaluateError(f"{dataset}: take {canonical} has no paint/masks (run segment on it first)")
         paint = f[canonical]["paint/masks"][()]
         mask_cams = [c.decode() if isinstance(c, bytes) else str(c) for c in f[canonical].attrs["mask_cameras"]]
-    rig = load_cameras(calib).subset(mask_cams)
-    pose = canonical_pose(data[canonical].joint_angles)
-    angles = data[grasp].joint_angles
+    other = data.recording_differences(canonical, "segment")
+    if other:
+        raise EvaluateError(f"{dataset}: take {canonical}: its paint masks and its annotation are of different "
+                            f"recordings ({'; '.join(other)}); redo whichever ran before the take was recorded again")
+    calibrated = load_cameras(calib)
+    used = [c for c in mask_cams if c in calibrated.ids]
+    if len(used) < len(mask_cams):
+        click.echo(f"note: cameras {', '.join(c for c in mask_cams if c not in used)} of {canonical}'s paint masks "
+                   f"are not in {calib}: left out", err=True)
+    if not used:
+        raise EvaluateError(f"{calib}: has none of the cameras of {canonical}'s paint masks ({', '.join(mask_cams)})")
+    rig = calibrated.subset(used)
+    paint = paint[[mask_cams.index(c) for c in used]]
+    pose = canonical_pose(canonical_ann.joint_angles)
+    angles = grasp_ann.joint_angles
     gaussians, extra, _ = load_checkpoint(hand_path)
     hand = HandGaussians.from_checkpoint(gaussians, extra)
     obj, _, _ = load_checkpoint(object_path)
@@ -92,7 +104,7 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
         return score_contacts(model, pose, maps.accumulated, rig, paint, chosen, threshold)[0]
 
     ours = score(hand, obj)
-    baseline = score(capsule_template(data[grasp].bone_lengths), obj)
+    baseline = score(capsule_template(grasp_ann.bone_lengths), obj)
     result = {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
               "baseline_f1": baseline.mean_f1, "gaussian": ours.to_json(), "baseline": baseline.to_json(),
               "tau_m": tau, "threshold": threshold}

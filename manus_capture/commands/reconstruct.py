@@ -34,6 +34,7 @@ from manus_capture.splat.takes import (
     hand_frames_from_truth,
     hand_masks_from_dataset,
     hand_views_from_take,
+    mask_cameras,
     object_views_from_take,
     spread_frames,
     still_frames,
@@ -43,6 +44,7 @@ from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, render, t
 from manus_core.cameras import scale_intrinsics
 from manus_core.errors import ReconstructInputError
 from manus_core.fileio import write_atomic
+from manus_core.take import Take
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -79,11 +81,35 @@ def _int_list(text: str, option: str) -> list[int]:
         raise click.BadParameter(f"{text!r}: expected comma-separated frame numbers", param_hint=option) from None
 
 
-def _load_rig(cameras_path: Path, only: str):
-    """The calibration, restricted to --only-cameras when given (KeyError names an unknown id)."""
+def _load_rig(cameras_path: Path, only: str, take: Path | None = None):
+    """The calibration, restricted to --only-cameras when given (KeyError names an unknown id).
+    The cameras of `take` that it lacks (a partial calibration) are named in one line; fewer than
+    two cameras left is refused then."""
     rig = load_cameras(cameras_path)
+    uncalibrated = [] if take is None else [c for c in Take(take).cameras if c not in rig.ids]
+    if uncalibrated:
+        click.echo(f"note: cameras {', '.join(uncalibrated)} of {take} are not in the calibration: left out", err=True)
     ids = _id_list(only)
-    return rig.subset(ids) if ids else rig
+    return _at_least_two(rig.subset(ids) if ids else rig, take, bool(uncalibrated))
+
+
+def _at_least_two(rig, take: Path | None, left_out: bool):
+    if left_out and len(rig) < 2:
+        raise ReconstructInputError(f"{take}: {len(rig)} cameras left ({', '.join(rig.ids) or 'none'}); "
+                                    "training needs at least 2")
+    return rig
+
+
+def _with_results(rig, take: Path, *having: tuple[str, list[str]]):
+    """The rig without the cameras that lack `having`'s results ((what, cameras) each, e.g. the
+    annotation's cameras), named in one line each."""
+    lacking = []
+    for what, cameras in having:
+        missing = [c for c in rig.ids if c not in cameras]
+        if missing:
+            click.echo(f"note: cameras {', '.join(missing)} have no {what}: left out", err=True)
+            lacking += missing
+    return _at_least_two(rig.subset([c for c in rig.ids if c not in lacking]), take, bool(lacking))
 
 
 def _check_output(output: Path, force: bool) -> None:
@@ -163,7 +189,7 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
         raise click.UsageError("--masks truth needs --take (a simulated take with ground_truth.h5)")
     _check_output(output, force)
     bg = _colour(background)
-    rig = _load_rig(cameras_path, only_cameras)
+    rig = _load_rig(cameras_path, only_cameras, take)
     held_out = _id_list(test_cameras)
     for cam in held_out:
         rig.index(cam)  # KeyError names an unknown camera
@@ -236,8 +262,14 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
         raise click.UsageError("give exactly one of --dataset and --truth")
     _check_output(output, force)
     bg = _colour(background)
-    rig = _load_rig(cameras_path, only_cameras)
     hand = hand_frames_from_truth(take) if truth else hand_frames_from_dataset(dataset_path, dataset_take)
+    masks_arg = masks_arg or ("truth" if truth else "dataset")
+    having = [(f"annotation in {hand.source}", list(hand.cameras))]
+    if masks_arg == "dataset":
+        if dataset_path is None:
+            raise click.UsageError("--masks dataset needs --dataset")
+        having.append((f"masks in {dataset_path}", mask_cameras(dataset_path, hand.key)))
+    rig = _with_results(_load_rig(cameras_path, only_cameras, take), take, *having)
     frames = _int_list(frames_arg, "--frames") or [int(f) for f in still_frames(hand.angles, count=poses)]
     if not frames:
         frames = [int(f) for f in spread_frames(hand.angles, poses)]
@@ -249,11 +281,8 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     train_rows = [i for i, f in enumerate(frames) if f not in test]
     if not train_rows:
         raise click.UsageError("--test-frames holds out every frame")
-    masks_arg = masks_arg or ("truth" if truth else "dataset")
     if masks_arg == "dataset":
-        if dataset_path is None:
-            raise click.UsageError("--masks dataset needs --dataset")
-        masks = hand_masks_from_dataset(dataset_path, dataset_take, frames, rig.ids)
+        masks = hand_masks_from_dataset(dataset_path, hand.key, frames, rig.ids)
     else:
         masks = "truth"
     angles, views = hand_views_from_take(take, rig, hand, frames, masks, scale)

@@ -38,7 +38,7 @@ def stop_on_signals(stop: StopFlag) -> Iterator[None]:
 
 
 def summarize(result: TakeResult) -> str:
-    """One line: status, cameras, frames, drops, size."""
+    """One line: status, cameras, frames, drops, size; what was lost (cameras, the LED controller)."""
     cams = result.cameras
     frames = result.frames
     drops = sum(c.seq_gaps for c in cams)
@@ -50,6 +50,8 @@ def summarize(result: TakeResult) -> str:
         line += f"; {result.reason}"
     if result.lost:
         line += "; lost: " + ", ".join(f"{c.id} ({c.status}: {c.error})" for c in result.lost)
+    if result.leds in ("lost", "failed"):
+        line += f"; LEDs {result.leds}: " + "; ".join(result.led_errors)
     return line
 
 
@@ -84,8 +86,8 @@ def command(rig_file: Path, session_dir: Path, take: str, kind: str, duration: f
     A live bar shows the frames stored and their rate. A camera that is lost mid-take is
     reported and the others go on. Ctrl-C, SIGTERM, a full disk or a failing writer end the take
     with every frame received so far readable, marked interrupted with the reason.
-    Exit code 0: complete; 1: a camera was lost or the take failed; 2: bad input or not enough
-    disk; 130: stopped by a signal.
+    Exit code 0: complete; 1: a camera or the LED controller was lost (the frames are kept) or the
+    take failed; 2: bad input or not enough disk; 130: stopped by a signal.
     """
     rig = load_rig(rig_file)
     if all(c.backend == "sim" for c in rig.cameras):   # the simulated cube shows who and what

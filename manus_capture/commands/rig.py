@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from manus_core.fileio import write_atomic
-from manus_core.rig_config import BACKENDS, SYNC_MODES, load_rig, rig_to_toml
+from manus_core.rig_config import BACKENDS, PLACEHOLDER, SYNC_MODES, load_rig, rig_to_toml
 from rig.layouts import LAYOUTS, make_rig
 
 from .rig_list import list_command
@@ -50,6 +50,9 @@ def init(layout, cameras, resolution, fps, backend, sync, seed, output: Path, fo
     write_atomic(output, rig_to_toml(rig).encode())
     click.echo(f"wrote {output}: {len(rig.cameras)} {backend} cameras, {resolution[0]}x{resolution[1]} "
                f"at {fps:g} FPS, {sync}")
+    if backend != "sim":
+        click.echo(f"  each camera's device is {PLACEHOLDER}: put in its serial number or /dev/v4l/by-id path "
+                   "(`manus-capture rig list` shows them); `rig check` and `record` refuse the file until then")
 
 
 @command.command("check")

@@ -11,12 +11,21 @@ import numpy as np
 
 from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
-from dataset_tools.segmentation.takes import Segmentation, check_output, segment_take, write_masks, write_overlays
+from dataset_tools.segmentation.takes import (
+    Segmentation,
+    segment_inputs,
+    segment_take,
+    stale_masks,
+    take_cameras,
+    write_masks,
+    write_overlays,
+)
 from manus_capture.bars import Bars
 from manus_capture.paint_contact import paint_on_surface
 from manus_core.cameras import CameraRig
-from manus_core.dataset import add_arrays
+from manus_core.dataset import read_dataset
 from manus_core.errors import SegmentationError
+from manus_core.provenance import provenance_attrs
 from manus_core.take import Take
 
 
@@ -33,14 +42,19 @@ from manus_core.take import Take
 @click.option("--object-take", type=click.Path(path_type=Path), default=None,
               help="The object-only take: the object's colour, and the paint colour of a painted object.")
 @click.option("--swatch", default=None, metavar="B,G,R", help="The paint colour, instead of the object take's.")
+@click.option("--cameras", "cameras", default=None, metavar="A,B,...",
+              help="Only these cameras (default: every camera of the take that the calibration has).")
 @click.option("--every", type=click.IntRange(1), default=1, show_default=True, help="Segment every N-th frame group.")
 @click.option("--overlays", type=click.Path(path_type=Path), default=None, help="Write PNG overlays into this folder.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="DATASET.h5 to add the masks to.")
-@click.option("--force", is_flag=True, help="Replace the take's masks if DATASET.h5 already has them.")
+@click.option("--force", is_flag=True, help="Redo the take's masks even when those in DATASET.h5 are current.")
 def command(take: Path, calib: Path, background: Path | None, masks: Path | None, object_take: Path | None,
-            swatch: str | None, every: int, overlays: Path | None, output: Path, force: bool) -> None:
+            swatch: str | None, cameras: str | None, every: int, overlays: Path | None, output: Path,
+            force: bool) -> None:
     """Segment TAKE: hand and object masks per view and frame group (background, colour, multi-view
-    consistency) and, for a canonical take, the green paint on the hand (docs/segmentation.md)."""
+    consistency) and, for a canonical take, the green paint on the hand (docs/segmentation.md).
+    Masks of the take already in DATASET.h5 are kept when they were made from the same inputs,
+    and redone (saying why) when not."""
     start = time.perf_counter()
     colour = None
     if swatch is not None:
@@ -53,18 +67,27 @@ def command(take: Path, calib: Path, background: Path | None, masks: Path | None
     if not calib.exists():
         raise SegmentationError(f"{calib}: no such calibration")
     rig = load_cameras(calib)
-    check_output(output, take_key(take), force)
+    opened, key = Take(take), take_key(take)
+    wanted = None if cameras is None else [c.strip() for c in cameras.split(",") if c.strip()]
+    cams = take_cameras(opened, rig, wanted)
+    inputs = segment_inputs(opened, rig, cams, background, object_take, colour, every, masks)
+    stale = stale_masks(output, key, inputs)
+    if stale == [] and not force:
+        click.echo(f"kept (same inputs): the masks of {key} in {output} (--force redoes them)")
+        return
     with Bars(unit="group") as bars:
-        result = segment_take(take, rig, background, object_take, colour, every, progress=bars, masks=masks)
+        result = segment_take(take, rig, background, object_take, colour, every, progress=bars, masks=masks,
+                              cameras=cams)
     groups = len(result.frame_ns)
-    write_masks(output, take_key(take), result, {"segmentation_calibration": str(calib),
-                                                 "segmentation_background": str(background or ""),
-                                                 "segmentation_masks": str(masks or "")})
-    surface = ""
-    if result.paint is not None:
-        surface = _paint_on_surface(output, take_key(take), rig, result)
+    arrays, surface = _paint_on_surface(output, key, rig, result, inputs)
+    write_masks(output, key, result, {"segmentation_calibration": str(calib),
+                                      "segmentation_background": str(background or ""),
+                                      "segmentation_masks": str(masks or ""),
+                                      **provenance_attrs("segment", inputs)}, arrays)
+    if stale is not None:
+        click.echo(f"redone the masks of {key}: {'; '.join(stale or ['--force'])}")
     if overlays is not None:
-        write_overlays(overlays, Take(take), result)
+        write_overlays(overlays, opened, result)
     for message in result.report["warnings"]:
         click.echo(f"warning: {message}", err=True)
     paint = "" if result.paint is None else f", paint in {int((result.paint.sum(axis=(1, 2)) > 0).sum())} views"
@@ -72,22 +95,30 @@ def command(take: Path, calib: Path, background: Path | None, masks: Path | None
                f"({len(result.report['warnings'])} warnings, {time.perf_counter() - start:.1f} s)")
 
 
-def _paint_on_surface(output: Path, key: str, rig: CameraRig, result: Segmentation) -> str:
-    """Add the paint's contact value per hand surface point to DATASET.h5 when annotate has fitted
-    the take's poses; returns the summary line's part about it."""
+def _paint_on_surface(output: Path, key: str, rig: CameraRig, result: Segmentation,
+                      inputs: dict) -> tuple[dict[str, np.ndarray], str]:
+    """The paint's contact value per hand surface point, when DATASET.h5 holds annotate's poses
+    of this recording of the take; returns the arrays and the summary line's part about them."""
+    if result.paint is None:
+        return {}, ""
+    dataset = read_dataset(output) if output.exists() else None
+    if dataset is None or key not in dataset or "annotate" not in dataset.stages(key):
+        click.echo(f"note: {output} has no poses of {key} (run annotate first): no contact per surface point",
+                   err=True)
+        return {}, ""
+    other = dataset.recording_differences(key, "segment", inputs)
+    if other:
+        click.echo(f"note: {output}: the poses of {key} are of another recording ({'; '.join(other)}): no contact "
+                   "per surface point (annotate the take again)", err=True)
+        return {}, ""
     with h5py.File(output, "r") as f:
-        group = f.get(key)
-        if group is None or "joint_angles" not in group:
-            click.echo(f"note: {output} has no poses of {key} (run annotate first): no contact per surface point",
-                       err=True)
-            return ""
+        group = f[key]
         frame_ns, angles, bones = group["frame_ns"][()], group["joint_angles"][()], group["bone_lengths"][()]
     t = result.paint_group
     at = np.flatnonzero(frame_ns == result.frame_ns[t])
     if not len(at) or not np.isfinite(angles[at[0]]).all():
         click.echo(f"note: no fitted pose for the paint's frame group of {key}: no contact per surface point", err=True)
-        return ""
+        return {}, ""
     arrays = paint_on_surface(rig.subset(result.cameras), result.paint, result.hand[t], angles[at[0]], bones)
-    add_arrays(output, key, arrays)
     painted = int((arrays["paint/contact"] > 0.5).sum())
-    return f", paint on {painted} of {int((arrays['paint/voters'] > 0).sum())} seen surface points"
+    return arrays, f", paint on {painted} of {int((arrays['paint/voters'] > 0).sum())} seen surface points"

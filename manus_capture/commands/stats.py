@@ -100,28 +100,45 @@ def command(dataset: Path, selected: tuple[str, ...], plot: Path | None, json_pa
     for path in (plot, json_path):
         if path is not None and path.exists() and not force:
             raise OutputExists(f"{path}: exists (use --force to overwrite)")
-    anns, table = [], {}
+    anns, table, notes = [], {}, []
     with Bars(unit="take") as bars:
         bars("stats", 0, len(keys))
         for done, key in enumerate(keys, 1):
-            ann = ds[key]
-            anns.append(ann)
-            table[key] = take_stats(ann)
+            stages = ds.stages(key)
+            table[key] = {"stages": sorted(stages)}
+            if "annotate" in stages:
+                ann = ds[key]
+                anns.append(ann)
+                table[key].update(take_stats(ann))
+            for stage in sorted(stages - {"annotate"}):
+                other = ds.recording_differences(key, stage)
+                if other:
+                    table[key][f"{stage}_of_another_recording"] = other
+                    notes.append(f"note: {key}: its {stage} results and its annotation are of different recordings "
+                                 f"({'; '.join(other)}): redo whichever ran before the take was recorded again")
             bars("stats", done, len(keys))
     header = f"{'take':<28} {'frames':>6} {'fitted':>6} {'views/joint':>11} {'joints %':>8} " \
-             f"{'reproj px (med/p95)':>19} {'IK mm (med/p95)':>15}"
+             f"{'reproj px (med/p95)':>19} {'IK mm (med/p95)':>15}  results"
     click.echo(header)
     for key, s in table.items():
+        results = "+".join(s["stages"])
+        if "frames" not in s:
+            click.echo(f"{key:<28} {'not annotated: run annotate on it for these numbers':<70}  {results}")
+            continue
         click.echo(f"{key:<28} {s['frames']:>6} {s['frames_fitted']:>6} "
                    f"{s['views_per_joint_mean']:>6.1f} (>={s['views_per_joint_min']:<2}) "
                    f"{s['joints_triangulated_pct']:>8.1f} "
                    f"{_fmt(s['reprojection_px_median']):>9}/{_fmt(s['reprojection_px_p95']):<9} "
-                   f"{_fmt(s['ik_residual_mm_median']):>7}/{_fmt(s['ik_residual_mm_p95']):<7}")
+                   f"{_fmt(s['ik_residual_mm_median']):>7}/{_fmt(s['ik_residual_mm_p95']):<7}  {results}")
+    for note in notes:
+        click.echo(note, err=True)
     if anns:
         plot_apertures(anns, plot)
     if json_path is not None:
         write_atomic(json_path, (json.dumps(table, indent=1) + "\n").encode())
-    total = sum(s["frames"] for s in table.values())
-    fitted = sum(s["frames_fitted"] for s in table.values())
+    total = sum(s.get("frames", 0) for s in table.values())
+    fitted = sum(s.get("frames_fitted", 0) for s in table.values())
+    bare = [key for key, s in table.items() if "frames" not in s]
     click.echo(f"{dataset}: {len(table)} takes, {total} frames, hand fitted in {fitted} "
-               f"({100.0 * fitted / max(total, 1):.1f}%)" + (f"; aperture plot {plot}" if anns else ""))
+               f"({100.0 * fitted / max(total, 1):.1f}%)" + (f"; not annotated: {', '.join(bare)}" if bare else "")
+               + (f"; aperture plot {plot}" if anns else ""))

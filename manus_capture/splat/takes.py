@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from manus_core.cameras import CameraRig, scale_intrinsics
-from manus_core.dataset import read_dataset
+from manus_core.dataset import Dataset, read_dataset
 from manus_core.errors import TakeInputError
 from manus_core.ground_truth import FILE_NAME as GROUND_TRUTH
 from manus_core.ground_truth import GroundTruth, TruthHand
@@ -254,7 +254,8 @@ class HandFrames:
     """The frames of a hand take and their joint angles: the input of hand_views_from_take.
 
     angles (T,26) and bone_lengths (20,) of the skeleton; frame_index (T,C) each camera's frame
-    index in the take (-1: none), cameras in that order; source names where the angles came from.
+    index in the take (-1: none), cameras in that order; source names where the angles came from,
+    key the take's SESSION/TAKE in DATASET.h5 when they came from there.
     """
 
     angles: np.ndarray
@@ -262,6 +263,7 @@ class HandFrames:
     frame_index: np.ndarray
     cameras: tuple[str, ...]
     source: str
+    key: str | None = None
 
     def __len__(self) -> int:
         return len(self.angles)
@@ -279,41 +281,61 @@ def hand_frames_from_truth(take_path: str | os.PathLike) -> HandFrames:
     return HandFrames(angles, bones, index, take.cameras, f"{path}")
 
 
+def _dataset_take(dataset_path: str | os.PathLike, take_key: str | None, stage: str) -> tuple[Dataset, str]:
+    """DATASET.h5 and the key of the take asked for; None: its only take with `stage`'s results."""
+    ds = read_dataset(dataset_path)
+    if take_key is None:
+        having = [key for key in ds.takes if stage in ds.stages(key)]
+        if len(having) != 1:
+            raise TakeInputError(f"{dataset_path}: holds {len(having)} takes with {stage} results "
+                                 f"({', '.join(having) or 'none'}); name one")
+        return ds, having[0]
+    if take_key not in ds:
+        raise TakeInputError(f"{dataset_path}: no take {take_key!r} (takes: {', '.join(ds.takes) or 'none'})")
+    return ds, take_key
+
+
 def hand_frames_from_dataset(dataset_path: str | os.PathLike, take_key: str | None = None) -> HandFrames:
     """The frame groups of one take of DATASET.h5 (annotate's joint angles and bone lengths).
 
-    take_key "SESSION/TAKE"; None when the dataset holds one take only.
+    take_key "SESSION/TAKE"; None when the dataset holds one annotated take only. A take without
+    annotation is refused (DatasetError names it and the stages it has).
     """
-    ds = read_dataset(dataset_path)
-    if take_key is None:
-        if len(ds) != 1:
-            raise TakeInputError(f"{dataset_path}: holds {len(ds)} takes ({', '.join(ds.takes)}); name one")
-        take_key = ds.takes[0]
-    if take_key not in ds:
-        raise TakeInputError(f"{dataset_path}: no take {take_key!r} (takes: {', '.join(ds.takes) or 'none'})")
+    ds, take_key = _dataset_take(dataset_path, take_key, "annotate")
     ann = ds[take_key]
     return HandFrames(ann.joint_angles, ann.bone_lengths, ann.frame_index, ann.cameras,
-                      f"{dataset_path}:{take_key}")
+                      f"{dataset_path}:{take_key}", take_key)
+
+
+def mask_cameras(dataset_path: str | os.PathLike, take_key: str | None) -> list[str]:
+    """The cameras whose hand masks `segment` stored for a take of DATASET.h5; refused when the
+    take has no masks, or when they are of another recording than its annotation."""
+    ds, key = _dataset_take(dataset_path, take_key, "segment")
+    with h5py.File(dataset_path, "r") as f:
+        group = f[key]
+        if "masks/hand" not in group:
+            raise TakeInputError(f"{dataset_path}: take {key} has no hand masks (run `manus-capture segment` on it)")
+        cameras = [c.decode() if isinstance(c, bytes) else str(c) for c in group.attrs["mask_cameras"]]
+    other = ds.recording_differences(key, "segment")
+    if other:
+        raise TakeInputError(f"{dataset_path}: take {key}: its masks and its annotation are of different recordings "
+                             f"({'; '.join(other)}); redo whichever ran before the take was recorded again")
+    return cameras
 
 
 def hand_masks_from_dataset(dataset_path: str | os.PathLike, take_key: str | None, rows: Sequence[int],
                             cameras: Sequence[str]) -> np.ndarray:
     """Hand masks (P,C,H,W) that `segment` stored for a take (masks/hand), for annotation rows
     `rows` of that take (matched on frame_ns) and `cameras` in that order."""
-    ds = read_dataset(dataset_path)
-    key = take_key or (ds.takes[0] if len(ds) == 1 else None)
-    if key is None or key not in ds:
-        raise TakeInputError(f"{dataset_path}: name the take (takes: {', '.join(ds.takes) or 'none'})")
+    ds, key = _dataset_take(dataset_path, take_key, "annotate")
     frame_ns = ds[key].frame_ns[np.asarray(rows, np.int64)]
+    mask_cams = mask_cameras(dataset_path, key)
+    missing = [c for c in cameras if c not in mask_cams]
+    if missing:
+        raise TakeInputError(f"{dataset_path}: take {key} has no masks of cameras {', '.join(missing)}")
     with h5py.File(dataset_path, "r") as f:
         group = f[key]
-        if "masks/hand" not in group:
-            raise TakeInputError(f"{dataset_path}: take {key} has no hand masks (run `manus-capture segment` on it)")
         mask_ns = group["masks/frame_ns"][()]
-        mask_cams = [c.decode() if isinstance(c, bytes) else str(c) for c in group.attrs["mask_cameras"]]
-        missing = [c for c in cameras if c not in mask_cams]
-        if missing:
-            raise TakeInputError(f"{dataset_path}: take {key} has no masks of cameras {', '.join(missing)}")
         lookup = {int(t): i for i, t in enumerate(mask_ns)}
         absent = [int(t) for t in frame_ns if int(t) not in lookup]
         if absent:

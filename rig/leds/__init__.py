@@ -7,14 +7,16 @@ Enttec DMX USB Pro-compatible interface, and a simulated controller on a pseudo-
         leds.flash(50)
         take["led_log"] = leds.records()
 
-The protocol a lab's firmware implements is specified in docs/leds-protocol.md.
+The protocol a lab's firmware implements is specified in docs/leds-protocol.md; each opened
+ASCII controller is a session of its own (HELLO), so separate processes never get each other's
+replies.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from manus_core.errors import LedDisconnected, LedError, LedRejected, LedTimeout, LedValueError
+from manus_core.errors import LedDisconnected, LedError, LedRejected, LedStaleReply, LedTimeout, LedValueError
 from manus_core.rig_config import LedConfig
 
 from .ascii import AsciiLedController
@@ -23,7 +25,7 @@ from .dmx import DmxLedController
 from .sim import SimulatedLedController
 
 __all__ = ["AsciiLedController", "Backoff", "DmxLedController", "LedController", "LedDisconnected",
-           "LedError", "LedRejected", "LedTimeout", "LedValueError", "SimulatedLedController",
+           "LedError", "LedRejected", "LedStaleReply", "LedTimeout", "LedValueError", "SimulatedLedController",
            "now_ns", "open_led_controller"]
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import serial
 
-from manus_core.errors import LedError, LedTimeout, LedValueError, LinkLost
+from manus_core.errors import LedDisconnected, LedError, LedTimeout, LedValueError, LinkLost
 
 from .base import DEFAULT_BACKOFF, Backoff, LedController, Opener, SerialLink, check_level, now_ns
 
@@ -213,7 +213,11 @@ class DmxLedController(LedController):
                 break
             except LinkLost as exc:
                 record["status"] = "disconnected"
-                self._recover(str(exc))
+                try:
+                    self._recover(str(exc))
+                except LedDisconnected as lost:
+                    record["error"] = f"{lost}; {cmd} not sent"
+                    raise LedDisconnected(record["error"]) from None
         record["t_done_ns"] = now_ns()
         record["status"] = "sent"
         return record

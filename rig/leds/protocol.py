@@ -13,8 +13,10 @@ from dataclasses import dataclass, field
 MAX_FRAME = 255          # bytes from '$' to '\n'; longer input is noise
 LEVEL_MAX = 1000         # wire levels are integers 0..1000 (tenths of a percent)
 SEQ_MAX = 65535          # host sequence numbers run 1..65535 and wrap to 1; 0 is the controller's
+NONCE_MAX = 999_999_999  # HELLO nonces are 1..NONCE_MAX, drawn at random for each connection
+CACHED = "cached"        # reply field: "cached=1" marks a reply answered from the controller's cache
 
-VERBS = ("SET", "ALL", "LVL", "FLASH", "TRIG", "STAT")
+VERBS = ("HELLO", "SET", "ALL", "LVL", "FLASH", "TRIG", "STAT")
 
 
 def crc16(data: bytes) -> int:

@@ -1,10 +1,11 @@
 """A simulated LED/trigger controller: the device side of docs/leds-protocol.md on a real pty.
 
-It behaves as the reference firmware should (dedupe of repeated sequence numbers, controller
-clock, flashes timed by the controller, trigger pulses, BOOT event) and keeps a timeline of
-what the panels showed, so the simulated cube can light its frames from `state_at`. Faults of
-the line and of the device can be switched on for tests: unplug/replug, reboot, silence,
-corrupted or torn replies, lost requests, injected garbage.
+It behaves as the reference firmware should (HELLO sessions, dedupe of repeated sequence
+numbers, controller clock, flashes timed by the controller, trigger pulses, BOOT event) and keeps
+a timeline of what the panels showed, so the simulated cube can light its frames from
+`state_at`. Faults of the line and of the device can be switched on for tests: unplug/replug,
+reboot, silence, corrupted or torn replies, lost requests, injected garbage, and firmware that
+gets sessions wrong.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .base import now_ns
-from .protocol import LEVEL_MAX, FrameParser, Message, ParserStats, encode, from_wire
+from .protocol import CACHED, LEVEL_MAX, FrameParser, Message, ParserStats, encode, from_wire, to_wire
 
 FIRMWARE = "sim-1"
 DEDUPE_DEPTH = 8
@@ -96,6 +97,11 @@ class SimulatedLedController:
         self.corrupt_replies = 0
         self.drop_requests = 0
         self.fragment_replies = False
+        # Firmware faults: HELLO unknown (firmware older than sessions), HELLO that keeps the
+        # reply cache, cached replies sent without their `cached=1` flag.
+        self.no_hello = False
+        self.hello_keeps_cache = False
+        self.unflagged_cache = False
         self.parser_stats = ParserStats()
         self._lock = threading.Lock()
         self._times: list[int] = [now_ns()]
@@ -104,7 +110,7 @@ class SimulatedLedController:
         self._runs: list[_TriggerRun] = []
         self._executed: list[tuple[int, str]] = []
         self._boot_ns = 0
-        self._cache: OrderedDict[int, bytes] = OrderedDict()
+        self._cache: OrderedDict[int, tuple[str, tuple[object, ...]]] = OrderedDict()   # seq -> reply
         self._requests: queue.Queue = queue.Queue()
         self._wake_r, self._wake_w = os.pipe()
         self._stop = threading.Event()
@@ -147,7 +153,7 @@ class SimulatedLedController:
             return [(start, end, level) for start, end, level in self._flashes]
 
     def executed(self) -> list[tuple[int, str]]:
-        """(seq, verb) of every command executed (not those answered from the dedupe cache)."""
+        """(seq, verb) of every command executed, HELLO included (not those answered from the cache)."""
         with self._lock:
             return list(self._executed)
 
@@ -282,24 +288,41 @@ class SimulatedLedController:
         if self.drop_requests > 0:
             self.drop_requests -= 1
             return
-        if msg.seq in self._cache:
-            reply = self._cache[msg.seq]
+        if msg.verb == "HELLO" and not self.no_hello:
+            # never cached: a repeated HELLO empties the cache again, which nothing can miss
+            verb, args = self._hello(msg)
+        elif msg.seq in self._cache:
+            verb, args = self._cache[msg.seq]
+            if verb == "OK" and not self.unflagged_cache:
+                args = (*args, f"{CACHED}=1")
         else:
-            reply = self._execute(msg)
-            self._cache[msg.seq] = reply
+            verb, args = self._execute(msg)
+            self._cache[msg.seq] = (verb, args)
             while len(self._cache) > DEDUPE_DEPTH:
                 self._cache.popitem(last=False)
+        reply = encode(msg.seq, verb, *args)
         if self.corrupt_replies > 0:
             self.corrupt_replies -= 1
             reply = reply[:2] + bytes([reply[2] ^ 0x01]) + reply[3:]
         self._write(reply)
 
-    def _execute(self, msg: Message) -> bytes:
+    def _hello(self, msg: Message) -> tuple[str, tuple[object, ...]]:
+        t = now_ns()
+        if len(msg.args) != 1 or not msg.args[0].isdigit():
+            return "ERR", ("BADARG", "HELLO needs a nonce")
+        if not self.hello_keeps_cache:
+            self._cache.clear()
+        with self._lock:
+            self._executed.append((msg.seq, "HELLO"))
+            levels = self._levels_field()
+        return "OK", (self._ctrl_us(t), f"nonce={msg.args[0]}", f"fw={FIRMWARE}", f"panels={self.panels}", levels)
+
+    def _execute(self, msg: Message) -> tuple[str, tuple[object, ...]]:
         t = now_ns()
         try:
             args = [int(a) for a in msg.args]
         except ValueError:
-            return encode(msg.seq, "ERR", "BADARG", "arguments must be integers")
+            return "ERR", ("BADARG", "arguments must be integers")
         with self._lock:
             error = self._apply(msg.verb, args, t)
             if error is None:
@@ -309,8 +332,8 @@ class SimulatedLedController:
                 run = self._runs[-1]
                 extra = [f"t0={self._ctrl_us(run.t0_ns)}", f"p0={run.id0}"]
         if error is not None:
-            return encode(msg.seq, "ERR", *error)
-        return encode(msg.seq, "OK", self._ctrl_us(t), *extra)
+            return "ERR", error
+        return "OK", (self._ctrl_us(t), *extra)
 
     def _apply(self, verb: str, args: list[int], t: int) -> tuple[str, str] | None:
         current = self._levels[-1]
@@ -357,11 +380,13 @@ class SimulatedLedController:
         since_boot = [r for r in self._runs if r.t0_ns >= self._boot_ns]
         return sum(r.n_pulses(t) for r in since_boot)
 
+    def _levels_field(self) -> str:
+        """The set-point as a reply field, levels=L0/L1/..."""
+        return "levels=" + "/".join(str(to_wire(x)) for x in self._levels[-1])
+
     def _status_fields(self, t: int) -> list[str]:
-        levels = self._levels[-1]
         flash_left = max((f[1] - t for f in self._flashes if f[0] <= t < f[1]), default=0)
         running = [r for r in self._runs if (r.t_stop_ns is None or r.t_stop_ns > t)
                    and (not r.count or r.n_pulses(t) < r.count)]
         rate = int(round(1e12 / running[-1].period_ns / (1 + self.drift_ppm * 1e-6))) if running else 0
-        return ["levels=" + "/".join(str(int(round(x * LEVEL_MAX))) for x in levels),
-                f"flash={flash_left // 1_000_000}", f"trig={rate}", f"pulses={self._pulses_emitted(t)}"]
+        return [self._levels_field(), f"flash={flash_left // 1_000_000}", f"trig={rate}", f"pulses={self._pulses_emitted(t)}"]

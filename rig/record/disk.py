@@ -11,6 +11,7 @@ from manus_core.errors import DiskSpaceError
 from manus_core.rig_config import RigConfig
 
 BALLAST_BYTES = 32 * 2**20    # reserved at the start, released to finish the take on a full disk
+RESERVE_NAME = ".reserve"     # the reserve's file in the take folder
 JPEG_BYTES_BASE = 2000        # estimate of a JPEG frame: header + entropy-coded pixels
 # q90 of the simulated cube at 720p measures 0.22 B/px with colour at full resolution (4:2:0: 0.17);
 # the estimate errs on the safe side

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from manus_core.errors import LedError
+from manus_core.errors import LedDisconnected, LedError
 
 from ..clock import Clock, VirtualClock, is_fast
 from ..leds import LedController
@@ -53,6 +53,7 @@ class LedPlan:
         self.device = getattr(controller, "sim", None)   # the simulated controller, if it is one
         self.flashes: list[dict[str, Any]] = []
         self.errors: list[str] = []
+        self.lost = False   # the controller went away mid-take and did not come back
         self.trigger: dict[str, Any] | None = None
         self._anchors: list[tuple[int, int, int]] = []
         self._pending: list[int] = []
@@ -109,9 +110,19 @@ class LedPlan:
                     # the controller times the flash in real time: the next command must not cut it short
                     time.sleep(ms / 1000 + 0.002)
         except LedError as exc:
-            self.errors.append(f"flash: {exc}")
+            self._failed("flash", exc)
         finally:
             self.cancel()
+
+    def _failed(self, what: str, exc: LedError) -> None:
+        self.errors.append(f"{what}: {exc}")
+        self.lost |= isinstance(exc, LedDisconnected)
+
+    @property
+    def status(self) -> str:
+        """The controller over the take: ok; lost (disconnected and not back); failed (a command
+        timed out, was refused or answered with a stale reply)."""
+        return "lost" if self.lost else "failed" if self.errors else "ok"
 
     def cancel(self) -> None:
         """Drop the commands not sent yet; exposures stop waiting for them."""
@@ -140,18 +151,25 @@ class LedPlan:
         return float(np.mean(self.device.state_at(real)))
 
     def start_trigger(self, rate_hz: float) -> None:
-        record = self.controller.trigger(rate_hz)
+        try:
+            record = self.controller.trigger(rate_hz)
+        except LedDisconnected:
+            self.lost = True
+            raise
         reply = record.get("reply", {})
         self.trigger = {"rate_hz": rate_hz, "seq": record.get("seq"), "t_clock_ns": self.to_clock(record["t_send_ns"]),
                         "p0": int(reply["p0"]) if "p0" in reply else None,
                         "t0_controller_us": int(reply["t0"]) if "t0" in reply else None}
 
     def stop_trigger(self) -> None:
+        if self.lost:
+            # its outputs went with it, and another reconnect would hold up the end of the take
+            return
         try:
             status = self.controller.status()
             self.controller.stop_trigger()
         except LedError as exc:
-            self.errors.append(f"stop trigger: {exc}")
+            self._failed("stop trigger", exc)
             return
         if self.trigger is not None and self.trigger.get("p0") is not None:
             self.trigger["pulses"] = int(status.get("pulses", 0)) - self.trigger["p0"]

@@ -30,11 +30,12 @@ from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
 from manus_core.progress import Progress, silent
 from manus_core.rig_config import RigConfig
 from manus_core.session import check_kind, utc_now
+from manus_core.take import recorder_identity
 
 from ..cameras import Camera, TakeCameras
 from ..clock import Clock, SimTakeClock, VirtualClock, is_fast
 from ..mkv import MkvWriter
-from .disk import BALLAST_BYTES, reserve
+from .disk import BALLAST_BYTES, RESERVE_NAME, reserve
 from .led_plan import LedPlan, flash_offsets
 from .options import RecordOptions
 from .report import CameraReport, TakeResult
@@ -106,7 +107,7 @@ class Recorder:
     def run(self) -> TakeResult:
         """Open, stream, stop, finish; always leaves a readable take folder behind."""
         (self.path / "cams").mkdir(parents=True, exist_ok=True)
-        ballast = self.path / ".reserve"
+        ballast = self.path / RESERVE_NAME
         reserve(ballast, BALLAST_BYTES)
         self.csv = FrameCsv(self.path / FRAMES_CSV)
         self._write_meta("recording", "")
@@ -143,7 +144,7 @@ class Recorder:
         extra = self.on_stop() if self.on_stop is not None else {}
         meta = self._write_meta(status, self.stop.reason, extra)
         return TakeResult(self.path, status, self.stop.reason, self.stop.by_signal,
-                          [s.report for s in self.streams], meta)
+                          [s.report for s in self.streams], meta, self.plan.status if self.plan is not None else "off")
 
     def _describe(self, s: Stream) -> None:
         with contextlib.suppress(Exception):   # info() is descriptive only; a backend may not have it yet
@@ -269,7 +270,7 @@ class Recorder:
             "sync": rig.sync, "clock": clock_desc, "duration_s": self.duration_s,
             "start_ns": self.start_ns, "t0_ns": self.t0_ns,
             "stop_ns": self.stop_ns,
-            "status": status, "reason": reason, "created": self.created,
+            "status": status, "reason": reason, "created": self.created, "recorder": recorder_identity(),
             "frames": sum(s.report.frames for s in self.streams),
             "lost_cameras": [s.id for s in self.streams if s.report.status != "ok"],
             "events": list(self.events),
@@ -282,7 +283,8 @@ class Recorder:
             ctl = plan.controller
             cfg = rig.leds   # as configured ("sim" rather than the pseudo-terminal behind it)
             meta["leds"] = {"protocol": cfg.protocol if cfg else ctl.protocol, "port": cfg.port if cfg else ctl.port,
-                            "panels": ctl.panels, "level": self.led_level, "errors": list(plan.errors)}
+                            "panels": ctl.panels, "level": self.led_level, "status": plan.status,
+                            "errors": list(plan.errors)}
             meta["led_log"] = plan.log()
             meta["flashes"] = list(plan.flashes)
         else:

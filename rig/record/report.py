@@ -45,6 +45,9 @@ class TakeResult:
     by_signal: bool
     cameras: list[CameraReport]
     meta: dict[str, Any] = field(default_factory=dict)
+    # The LED controller over the take (LedPlan.status): off (none), ok,
+    # lost (disconnected and not back) or failed (a command timed out, was refused or went stale).
+    leds: str = "off"
 
     @property
     def frames(self) -> int:
@@ -55,8 +58,14 @@ class TakeResult:
         return [c for c in self.cameras if c.status != "ok"]
 
     @property
+    def led_errors(self) -> list[str]:
+        """What failed on the LED controller during the take (take.json leds.errors)."""
+        return list((self.meta.get("leds") or {}).get("errors", []))
+
+    @property
     def exit_code(self) -> int:
-        """0 complete with every camera; 130 stopped by a signal; 1 any other fault."""
+        """0 complete with every camera and the LEDs; 130 stopped by a signal; 1 any other fault
+        (a lost camera or LED controller: the frames are kept, the take is not what was asked)."""
         if self.status == "interrupted" and self.by_signal:
             return 130
-        return 1 if self.status == "interrupted" or self.lost else 0
+        return 1 if self.status == "interrupted" or self.lost or self.leds in ("lost", "failed") else 0

@@ -122,5 +122,5 @@ def record_take(rig: RigConfig, session: str | Path, take: str, kind: str, durat
         if own:
             leds.close()
     sess.update_take(take, status=result.status, reason=result.reason, frames=result.frames,
-                     lost_cameras=[c.id for c in result.lost])
+                     lost_cameras=[c.id for c in result.lost], leds=result.leds)
     return result

@@ -4,7 +4,9 @@
 VENV     ?= .venv
 PY       := $(VENV)/bin/python
 STAMP    := $(VENV)/.installed
-APT_PKGS := aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config socat ffmpeg
+# chromium + chromium-driver: the monitor's page is tested in a real browser (docs/setup.md)
+APT_PKGS := aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config socat ffmpeg \
+            chromium chromium-driver
 SUDO     := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # one worker per file: a module fixture (the demo run, the rendered cube) is built once, not per worker
 PYTEST_ARGS ?= -n 2 -q --dist loadfile

@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "recover": ("recover", "Finish a take whose recorder was killed mid-take."),
     "protocol": ("protocol", "Walk through the capture protocol of a session, one take per step."),
     "sync-report": ("sync_report", "Validate the synchronization of a recorded take."),
+    "monitor": ("monitor", "Serve the monitor page for a recorded take or session."),
     "calibrate": ("calibrate", "Calibrate one camera (intrinsics) or the whole rig."),
     "models": ("models", "Install and list the hand keypoint models."),
     "detect": ("detect", "Detect 2D hand keypoints in every view of a take."),

@@ -216,3 +216,8 @@ class OutputError(ManusError, OSError):
 class LedStaleReply(LedError):
     """The controller answered a request with a reply that cannot be its own (one it kept for an
     earlier request with the same number): the command was not carried out."""
+
+
+class MonitorError(InputError):
+    """The monitor cannot serve as asked (an address in use, a bad address or token, a folder
+    that is no take or session); names the address or folder (exit code 2)."""

@@ -5,17 +5,69 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import click
 
+from dataset_tools.sync import sync_take
+from manus_core.errors import ManusError
 from manus_core.rig_config import load_rig
 from manus_core.session import TAKE_KINDS as KINDS
-from rig.record import RecordOptions, StopFlag, TakeResult, record_take
+from rig.record import LiveSession, RecordOptions, StopFlag, TakeResult, record_take
 from rig.sim.subject import with_sim_subject
 
 from ..bars import Bars
+from ..monitor import parse_address, start_monitor
+from .sync_report import echo_report
+
+
+def monitor_options(fn: Callable) -> Callable:
+    """--monitor, --monitor-token and --no-sync-check, shared by record and protocol."""
+    fn = click.option("--no-sync-check", is_flag=True,
+                      help="Skip the sync validation after each take (sync_report.json; see sync-report).")(fn)
+    fn = click.option("--monitor-token", default=None, metavar="TOKEN",
+                      help="Token every monitor request must carry (beyond loopback, one is made and "
+                           "printed when not given).")(fn)
+    return click.option("--monitor", default=None, metavar="[HOST:]PORT",
+                        help="Serve a live web page of the recording on [HOST:]PORT (host default 127.0.0.1, "
+                             "port 0: any free one); docs/recording.md, \"The monitor\".")(fn)
+
+
+@contextlib.contextmanager
+def monitoring(source: LiveSession, address: str | None, token: str | None) -> Iterator[None]:
+    """Serve `source` on `address` ([HOST:]PORT; None: no monitor) while the block runs.
+
+    Started before any camera opens, so that a port in use fails first; its failing to stop
+    cannot change what the recording reports.
+    """
+    if address is None:
+        yield
+        return
+    server = start_monitor(source, *parse_address(address), token)
+    click.echo(f"monitor: {server.url}")
+    try:
+        yield
+    finally:
+        try:
+            server.stop()
+        except Exception as exc:   # the takes are on disk: the monitor's end is only worth a note
+            click.echo(f"monitor: did not stop cleanly: {type(exc).__name__}: {exc}", err=True)
+
+
+def check_sync(take_dir: Path) -> str | None:
+    """The sync validation of a finished take (sync_report.json/.md written into it) and its
+    verdict line: pass, fail, error (it could not run); None when the take left no files."""
+    if not (take_dir / "take.json").is_file():
+        return None
+    try:
+        with Bars(unit="camera") as bars:
+            report = sync_take(take_dir, force=True, progress=bars)
+    except (ManusError, OSError) as exc:   # the frames are recorded; only their check is missing
+        click.echo(f"sync check: {take_dir.name}: error: {exc}", err=True)
+        return "error"
+    echo_report(report, take_dir, "sync check")
+    return report["verdict"]
 
 
 @contextlib.contextmanager
@@ -78,16 +130,21 @@ def summarize(result: TakeResult) -> str:
 @click.option("--operator", default=None, help="Operator (stored in session.toml).")
 @click.option("--object", "obj", default=None,
               help="Object name (stored in session.toml; sets the simulated object: box, mug, sphere).")
+@monitor_options
 def command(rig_file: Path, session_dir: Path, take: str, kind: str, duration: float, force: bool,
             level: float | None, flash_ms: int | None, flash_every: float, flash_level: float | None,
-            no_leds: bool, subject: str | None, operator: str | None, obj: str | None) -> None:
+            no_leds: bool, subject: str | None, operator: str | None, obj: str | None,
+            monitor: str | None, monitor_token: str | None, no_sync_check: bool) -> None:
     """Record one take: every camera into SESSION/TAKE/cams/CAM.mkv, frames.csv and take.json.
 
-    A live bar shows the frames stored and their rate. A camera that is lost mid-take is
-    reported and the others go on. Ctrl-C, SIGTERM, a full disk or a failing writer end the take
-    with every frame received so far readable, marked interrupted with the reason.
-    Exit code 0: complete; 1: a camera or the LED controller was lost (the frames are kept) or the
-    take failed; 2: bad input or not enough disk; 130: stopped by a signal.
+    A live bar shows the frames stored and their rate (--monitor: a web page too). A camera
+    that is lost mid-take is reported and the others go on. Ctrl-C, SIGTERM, a full disk or a
+    failing writer end the take with every frame received so far readable, marked interrupted
+    with the reason. Then the sync validation writes SESSION/TAKE/sync_report.json/.md and
+    prints its verdict (--no-sync-check skips it).
+    Exit code 0: complete and the sync check passed; 1: a camera or the LED controller was lost
+    (the frames are kept), the take failed, or the sync check did not pass; 2: bad input, not
+    enough disk or a monitor port in use; 130: stopped by a signal.
     """
     rig = load_rig(rig_file)
     if all(c.backend == "sim" for c in rig.cameras):   # the simulated cube shows who and what
@@ -95,8 +152,14 @@ def command(rig_file: Path, session_dir: Path, take: str, kind: str, duration: f
     stop = StopFlag()
     options = RecordOptions(force=force, subject=subject, operator=operator, obj=obj, use_leds=not no_leds,
                             level=level, flash_ms=flash_ms, flash_every_s=flash_every, flash_level=flash_level)
-    with stop_on_signals(stop), Bars(unit="frame") as bars:
-        result = record_take(rig, session_dir, take, kind, duration, options, stop=stop, progress=bars)
-    click.echo(summarize(result))
-    if result.exit_code:
-        raise SystemExit(result.exit_code)
+    source = LiveSession(rig, session_dir)
+    with monitoring(source, monitor, monitor_token):
+        with stop_on_signals(stop), Bars(unit="frame") as bars:
+            result = record_take(rig, session_dir, take, kind, duration, options, stop=stop, progress=bars,
+                                 on_live=source.attach)
+        click.echo(summarize(result))
+        verdict = None if no_sync_check else check_sync(result.path)
+        source.finished(take, verdict, int(result.status == "complete"))
+    code = result.exit_code or int(verdict not in (None, "pass"))
+    if code:
+        raise SystemExit(code)

@@ -36,6 +36,14 @@ def command(take: Path, force: bool, tolerance_ms: float, max_drop_pct: float, o
     settings = SyncSettings(tolerance_ms=tolerance_ms, max_drop_pct=max_drop_pct)
     with Bars(unit="camera") as bars:
         report = sync_take(tk.path, force=force, optical=optical, settings=settings, progress=bars)
+    echo_report(report, tk.path, "sync-report")
+    if report["verdict"] != "pass":
+        click.get_current_context().exit(1)
+
+
+def echo_report(report: dict, take: Path, label: str) -> None:
+    """A sync report as the CLI shows it: each reason and note on stderr, then one verdict line
+    `LABEL: TAKE: pass|fail (...) -> TAKE/sync_report.json` (sync-report, and record after a take)."""
     sp = report["spread_ms"]
     dropped = sum(c["frames_dropped"] for c in report["cameras"].values())
     spread = "n/a" if sp["p95"] is None else f"{sp['p95']:.3f} ms"
@@ -46,10 +54,8 @@ def command(take: Path, force: bool, tolerance_ms: float, max_drop_pct: float, o
         click.echo(f"  fail: {reason}", err=True)
     if report["sync"] == "free-run" and report["tolerance_met"] is False:
         click.echo(f"  note: free-running cameras cannot be grouped tighter than their phases allow; exposures "
-                   f"within {tolerance_ms:g} ms need a hardware trigger (docs/sync.md)", err=True)
-    click.echo(f"sync-report: {tk.path.name}: {report['verdict']} ("
+                   f"within {report['settings']['tolerance_ms']:g} ms need a hardware trigger (docs/sync.md)", err=True)
+    click.echo(f"{label}: {take.name}: {report['verdict']} ("
                f"{state + ', ' if state else ''}{len(report['cameras'])} cameras, "
                f"{report['groups']} groups, {report['complete_groups']} complete, spread p95 {spread}, "
-               f"{dropped} drops) -> {tk.path / 'sync_report.json'}")
-    if report["verdict"] != "pass":
-        click.get_current_context().exit(1)
+               f"{dropped} drops) -> {take / 'sync_report.json'}")

@@ -40,12 +40,17 @@ def estimate_take_bytes(rig: RigConfig, duration_s: float) -> int:
     return int(total)
 
 
-def check_disk(rig: RigConfig, folder: Path, duration_s: float) -> None:
-    """Refuse a take that does not fit: estimate + storage.min_free_gb + the finishing reserve."""
+def free_bytes(folder: Path) -> int:
+    """Free space on the disk that holds `folder` (or would, once created)."""
     probe = folder
     while not probe.exists():
         probe = probe.parent
-    free = shutil.disk_usage(probe).free
+    return shutil.disk_usage(probe).free
+
+
+def check_disk(rig: RigConfig, folder: Path, duration_s: float) -> None:
+    """Refuse a take that does not fit: estimate + storage.min_free_gb + the finishing reserve."""
+    free = free_bytes(folder)
     take = estimate_take_bytes(rig, duration_s)
     need = take + rig.storage.min_free_gb * 1e9 + BALLAST_BYTES
     if free < need:

@@ -37,6 +37,7 @@ from ..clock import Clock, SimTakeClock, VirtualClock, is_fast
 from ..mkv import MkvWriter
 from .disk import BALLAST_BYTES, RESERVE_NAME, reserve
 from .led_plan import LedPlan, flash_offsets
+from .live import Live
 from .options import RecordOptions
 from .report import CameraReport, TakeResult
 from .stop import StopFlag, wait_until
@@ -55,7 +56,8 @@ class Recorder:
     cameras start); the take ends at t0 + duration; cameras.finish runs after the cameras are
     closed and returns extra take.json fields. `plan` is the take's LedPlan (made with the same
     clock and StopFlag), or None without LEDs. progress("rec TAKE", frames stored, frames
-    expected) is reported every PROGRESS_S.
+    expected) is reported every PROGRESS_S. `live` (rig.record.live.Live) shows the take to a
+    monitor from any thread, before, during and after run().
     """
 
     def __init__(self, rig: RigConfig, path: str | Path, kind: str, duration_s: float, cameras: TakeCameras,
@@ -92,6 +94,7 @@ class Recorder:
         self.start_ns: int | None = None
         self.stop_ns: int | None = None
         self.created = utc_now()
+        self.live = Live(self)
 
     @property
     def led_level(self) -> float:
@@ -138,11 +141,13 @@ class Recorder:
             with contextlib.suppress(FileNotFoundError):
                 ballast.unlink()
             if self.stop.reason.startswith("recorder error"):
+                self.live.status = "interrupted"
                 with contextlib.suppress(Exception):
                     self._write_meta("interrupted", self.stop.reason)
         status = "interrupted" if self.stop.is_set() else "complete"
         extra = self.on_stop() if self.on_stop is not None else {}
         meta = self._write_meta(status, self.stop.reason, extra)
+        self.live.status = status
         return TakeResult(self.path, status, self.stop.reason, self.stop.by_signal,
                           [s.report for s in self.streams], meta, self.plan.status if self.plan is not None else "off")
 

@@ -93,6 +93,9 @@ class Stream:
         self.mkv: MkvWriter | None = None
         self.write_failed = False
         self.abandoned = False
+        # (JPEG bytes, CLOCK_MONOTONIC ns) of the latest stored frame, for a monitor: one
+        # assignment of bytes the writer has anyway, never a copy or a decode
+        self.latest: tuple[bytes, int] | None = None
         self.reader = threading.Thread(target=self._read_loop, name=f"read-{cam_id}", daemon=True)
         self.writer = threading.Thread(target=self._write_loop, name=f"write-{cam_id}", daemon=True)
 
@@ -227,3 +230,4 @@ class Stream:
             report.bytes += len(data)
             report.encoding = frame.encoding
         report.frames += len(frames)
+        self.latest = (datas[-1], time.monotonic_ns())

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from ..clock import Clock, MonotonicClock
 from ..leds import LedController, open_led_controller
 from .disk import check_disk
 from .led_plan import LedPlan
+from .live import Live
 from .options import RecordOptions
 from .recorder import Recorder
 from .report import TakeResult
@@ -77,13 +79,16 @@ def open_backends(backends: dict[str, Backend], setup: TakeSetup) -> TakeCameras
 
 def record_take(rig: RigConfig, session: str | Path, take: str, kind: str, duration_s: float,
                 options: RecordOptions = RecordOptions(), *, leds: LedController | None = None,
-                stop: StopFlag | None = None, progress: Progress = silent) -> TakeResult:
+                stop: StopFlag | None = None, progress: Progress = silent,
+                on_live: Callable[[Live], None] | None = None) -> TakeResult:
     """Record one take into SESSION/TAKE and keep session.toml up to date.
 
     `leds`: an LED controller already open (the protocol keeps one across takes); otherwise
     rig.leds is opened for the take when options.use_leds. For a simulated rig the cube renders
     the take, its lighting follows the (simulated) LED controller, and ground_truth.h5 and the
     session's tags.json are written. `stop` ends the take early (signal handlers set it).
+    `on_live` gets the take's Live (rig.record.live) before any camera opens; it stays readable
+    after the take (a monitor serves it: LiveSession.attach). The sync check is not run here.
     """
     check_take_name(take)
     check_kind(kind)
@@ -113,6 +118,8 @@ def record_take(rig: RigConfig, session: str | Path, take: str, kind: str, durat
         sess.update_take(take, kind=kind, status="recording", reason="", started=utc_now(), duration_s=duration_s)
         recorder = Recorder(rig, take_dir, kind, duration_s, cameras, clock, options=options, plan=plan, stop=stop,
                             progress=progress)
+        if on_live is not None:
+            on_live(recorder.live)
         try:
             result = recorder.run()
         except BaseException as exc:

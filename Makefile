@@ -43,10 +43,10 @@ test: models
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 # the tools we are measured against, for the benchmarks only (no-deps: aniposelib would pull a
-# second OpenCV and jax)
+# second OpenCV); aniposelib's triangulation imports jax when it runs, so jax's CPU build comes too
 bench: models
 	$(PY) -m pip install -q --no-deps aniposelib==0.8.0 OneEuroFilter==0.2.1
-	$(PY) -m pip install -q toml pandas
+	$(PY) -m pip install -q toml pandas 'jax[cpu]'
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:

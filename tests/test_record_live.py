@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import json
 import re
@@ -146,7 +147,13 @@ def test_record_serves_the_monitor_and_prints_its_url(tmp_path):
         urllib.request.urlopen(url[1] + "api/status", timeout=2)
 
 
-def test_monitor_stopped_mid_take_leaves_the_take_complete(tmp_path):
+def kill_thread(thread: threading.Thread) -> None:
+    """Raise in `thread` as a bug would: the server thread dies, not by its own stop()."""
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread.ident), ctypes.py_object(RuntimeError))
+
+
+@pytest.mark.parametrize("end", ["stopped", "killed"])
+def test_monitor_ended_mid_take_leaves_the_take_complete(tmp_path, end):
     rig = tiny_rig(time_scale=1.0)
     source = LiveSession(rig, tmp_path / "s")
     server = start_monitor(source, "127.0.0.1", 0, None)
@@ -158,9 +165,13 @@ def test_monitor_stopped_mid_take_leaves_the_take_complete(tmp_path):
                 return sum(c["frames"] for c in json.load(r)["cameras"]) > 0
 
         wait_for(serving)
+        if end == "killed":
+            kill_thread(server.thread)
+            server.thread.join(10)
+            assert not server.running and server.error.startswith("RuntimeError")
     finally:
         server.stop()
-    assert thread.is_alive()   # stopped mid-take
+    assert thread.is_alive()   # ended mid-take
     thread.join()
     assert "error" not in out, out
     result = out["result"]

@@ -32,6 +32,7 @@ from rig.cameras.aravis import aravis
 from rig.clock import VirtualClock
 from rig.layouts import make_rig
 from rig.mkv import MkvWriter
+import rig.record.streams as streams
 from rig.record import FLAG_HOST_JPEG, Recorder, RecordOptions, StopFlag, flash_offsets, record_take
 
 PERIOD_NS = 1e9 / 120
@@ -413,6 +414,29 @@ def test_a_registered_backend_records_and_is_listed(tmp_path, monkeypatch):
     mixed = dataclasses.replace(rig, cameras=(rig.cameras[0], dataclasses.replace(rig.cameras[1], backend="v4l2")))
     with pytest.raises(RecordError, match="simulated and real cameras cannot share a take"):
         record_take(mixed, tmp_path / "s", "u", "calibration", 0.05, RecordOptions(use_leds=False))
+
+
+def test_a_fast_virtual_clock_never_overflows_a_slow_writer(tmp_path, monkeypatch):
+    """A simulated camera on a fast clock outruns any disk; it has no real time to keep, so its reader
+    waits for the writer instead of losing frames (a loaded CI machine lost some before)."""
+    store = streams.Stream._store
+
+    def slow_store(self, frames):
+        time.sleep(0.02)
+        store(self, frames)
+
+    monkeypatch.setattr(streams.Stream, "_store", slow_store)
+    rig = make_rig("cube53", cameras=1, resolution=(64, 48), backend="aravis", seed=1)
+    clock = VirtualClock(time_scale=0)
+    t0 = clock.now_ns() + 1_000_000
+    cid = rig.cameras[0].id
+    image = np.full((48, 64), 128, np.uint8)
+    # 1 s at 120 FPS is 121 frames against a ring of 60: without the wait half of them were lost
+    result = Recorder(rig, tmp_path / "t", "calibration", 1.0,
+                      TakeCameras({cid: RawCamera(cid, image, "mono8", clock, t0)}, t0_ns=t0), clock).run()
+    assert result.status == "complete"
+    assert [(r.frames, r.overflows, r.seq_gaps) for r in result.cameras] == [(121, 0, 0)]
+    assert check_readable(tmp_path / "t") == {cid: 121}
 
 
 @pytest.mark.parametrize("chroma", ["444", "420"])

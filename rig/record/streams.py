@@ -2,7 +2,9 @@
 
 A reader only pulls frames from its camera and never waits on the disk: a full ring costs a
 frame (counted as an overflow, visible as a sequence gap) rather than stalling the camera's own
-buffers. A writer muxes the JPEG bytes as they came (raw frames from machine-vision cameras are
+buffers. The one exception is a simulated camera on a fast virtual clock: it has no real time to
+keep, so its reader waits for the writer; otherwise a loaded machine would lose frames that a
+real camera at that rate would not. A writer muxes the JPEG bytes as they came (raw frames from machine-vision cameras are
 JPEG-encoded first) and appends the frame's row to frames.csv only after its packet is written,
 so that rows and packets agree.
 """
@@ -22,7 +24,7 @@ from manus_core.errors import CameraDisconnected
 from manus_core.frames_csv import HEADER, format_row
 
 from ..cameras import Camera, Frame
-from ..clock import Clock
+from ..clock import Clock, is_fast
 from ..mkv import MkvWriter
 from .jpeg import frame_jpeg
 from .report import CameraReport
@@ -90,6 +92,7 @@ class Stream:
     def __init__(self, rec: StreamOwner, cam_id: str, camera: Camera, report: CameraReport, ring: int) -> None:
         self.rec, self.id, self.camera, self.report = rec, cam_id, camera, report
         self.ring: queue.Queue = queue.Queue(maxsize=ring)
+        self.lossless = is_fast(rec.clock)
         self.mkv: MkvWriter | None = None
         self.write_failed = False
         self.abandoned = False
@@ -132,15 +135,24 @@ class Stream:
                     continue
                 got_any = True
                 last_frame = time.monotonic()
-                try:
-                    self.ring.put_nowait(frame)
-                except queue.Full:
-                    self.report.overflows += 1
+                self._put(frame)
                 # the first frame that arrives at or after the end is kept: every frame read is stored
                 if frame.t_host_ns >= rec.end_ns:
                     break
         finally:
             self.ring.put(_END)
+
+    def _put(self, frame: Frame) -> None:
+        if self.lossless:
+            while self.writer.is_alive():
+                with contextlib.suppress(queue.Full):
+                    self.ring.put(frame, timeout=READ_TIMEOUT_S)
+                    return
+        else:
+            with contextlib.suppress(queue.Full):
+                self.ring.put_nowait(frame)
+                return
+        self.report.overflows += 1
 
     def _write_loop(self) -> None:
         rec, report = self.rec, self.report

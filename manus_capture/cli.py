@@ -39,6 +39,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "contacts": ("contacts", "Hand-object contacts from the Gaussian models."),
     "evaluate": ("evaluate", "Score estimated contacts against the paint ground truth."),
     "demo": ("demo", "Run the whole pipeline on the simulated rig and report every stage."),
+    "import": ("release_import", "Import a released dataset (MANUS-Grasps, BRICS) as a session."),
+    "export": ("release_export", "Export takes in the layouts other tools read (MANUS release, nerfstudio)."),
 }
 
 

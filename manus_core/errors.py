@@ -221,3 +221,8 @@ class LedStaleReply(LedError):
 class MonitorError(InputError):
     """The monitor cannot serve as asked (an address in use, a bad address or token, a folder
     that is no take or session); names the address or folder (exit code 2)."""
+
+
+class ReleaseError(InputError):
+    """A MANUS/BRICS release folder (or an export into that layout) that cannot be read or
+    written as asked; names the file or folder and what was looked for."""

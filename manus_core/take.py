@@ -3,6 +3,7 @@
     TAKE/take.json      kind, cameras, fps, resolution, sync mode, start/stop, status, LED log
     TAKE/frames.csv     one row per received frame (manus_core.frames_csv reads it)
     TAKE/cams/CAM.mkv   one MJPEG stream per camera, frames in the order of their frames.csv rows
+                        (an imported take may name other MJPEG files in take.json's "videos")
 
 A camera's *frame index* k is its k-th row in frames.csv and its k-th packet in CAM.mkv. Frames are
 read as raw JPEG packets (no decoding while skipping) and decoded with OpenCV only when asked for.
@@ -109,27 +110,25 @@ class Take:
         self._check_camera(cam)
         return int(np.count_nonzero(self.frames["cam"] == cam))
 
-    def video_path(self, cam: str) -> Path:
+    def video_file(self, cam: str) -> Path:
+        """Where a camera's video is, whether or not it is there: cams/CAM.mkv, or the file that
+        take.json's "videos" names for it (an imported release's video, read where it lies;
+        relative to the take folder)."""
         self._check_camera(cam)
-        path = self.path / "cams" / f"{cam}.mkv"
+        named = self.meta.get("videos", {})
+        if isinstance(named, dict) and isinstance(named.get(cam), str):
+            return self.path / named[cam]
+        return self.path / "cams" / f"{cam}.mkv"
+
+    def video_path(self, cam: str) -> Path:
+        path = self.video_file(cam)
         if not path.is_file():
             raise TakeError(f"{path}: missing (camera {cam} of take.json has no video)")
         return path
 
     def packets(self, cam: str) -> Iterator[np.ndarray]:
         """The JPEG packets of a camera's video, in order, undecoded (1-D uint8 arrays)."""
-        path = self.video_path(cam)
-        cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_FORMAT, -1])
-        if not cap.isOpened():
-            raise TakeError(f"{path}: cannot be opened as a video (corrupt or not Matroska/MJPEG)")
-        try:
-            while True:
-                ok, packet = cap.read()
-                if not ok:
-                    return
-                yield packet.reshape(-1)
-        finally:
-            cap.release()
+        return video_packets(self.video_path(cam))
 
     def iter_frames(self, cam: str, start: int = 0, stop: int | None = None,
                     step: int = 1) -> Iterator[tuple[int, np.ndarray]]:
@@ -161,6 +160,21 @@ class Take:
         if cam not in self.cameras:
             raise TakeError(f"{self.path / 'take.json'}: no camera {cam!r} "
                             f"(cameras: {', '.join(self.cameras)})")
+
+
+def video_packets(path: Path) -> Iterator[np.ndarray]:
+    """The packets of a video file, in order, undecoded (1-D uint8 arrays)."""
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG, [cv2.CAP_PROP_FORMAT, -1])
+    if not cap.isOpened():
+        raise TakeError(f"{path}: cannot be opened as a video (corrupt, or not MJPEG in Matroska or AVI)")
+    try:
+        while True:
+            ok, packet = cap.read()
+            if not ok:
+                return
+            yield packet.reshape(-1)
+    finally:
+        cap.release()
 
 
 def _decode(packet: np.ndarray, path: Path, k: int) -> np.ndarray:

@@ -20,7 +20,7 @@ from .clock import ClockFit, fit_clock
 from .drops import SequenceCheck, check_sequence, end_drops, tick_edge_drops
 from .files import TakeFiles, check_files
 from .grouping import FrameGroups, group_frames, spread_floor_ns
-from .groups_file import GROUPS_FILE, TakeGroups, load_groups, save_groups
+from .groups_file import GROUPS_FILE, RELEASE_METHOD, TakeGroups, load_groups, save_groups
 from .optical import BrightnessFn, Flash, led_flashes, optical_check
 from .report import REPORT_VERSION, build_report, noise_range_ns, report_markdown, take_state, timeline_png
 from .takes import analyze_take, frame_groups, refuse_overwrite, sync_take, take_brightness, take_flashes
@@ -28,7 +28,8 @@ from .takes import analyze_take, frame_groups, refuse_overwrite, sync_take, take
 __all__ = ["SYNC_MODES", "CameraSync", "SyncResult", "SyncSettings", "analyze_camera", "analyze_sync", "ClockFit",
            "fit_clock", "SequenceCheck", "check_sequence", "end_drops", "tick_edge_drops", "TakeFiles",
            "check_files", "FrameGroups", "group_frames", "spread_floor_ns",
-           "GROUPS_FILE", "TakeGroups", "load_groups", "save_groups", "BrightnessFn", "Flash", "led_flashes",
+           "GROUPS_FILE", "RELEASE_METHOD", "TakeGroups", "load_groups", "save_groups", "BrightnessFn", "Flash",
+           "led_flashes",
            "optical_check", "REPORT_VERSION", "build_report", "noise_range_ns", "report_markdown", "take_state",
            "timeline_png",
            "analyze_take", "frame_groups", "refuse_overwrite", "sync_take", "take_brightness", "take_flashes"]

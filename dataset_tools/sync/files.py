@@ -1,15 +1,17 @@
 """What a take's files say besides the frame times (docs/sync.md, "The take's files"): take.json's
 status, each camera's video against its frames.csv rows and take.json's count, and rows of
 cameras take.json does not list. Videos are counted from their Matroska element headers
-(rig.mkv.count_frames): no frame is decoded."""
+(rig.mkv.count_frames), an imported AVI from its packets: no frame is decoded."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from manus_core.errors import TakeError
 from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
 from manus_core.take import Take
 from rig.mkv import count_frames
@@ -43,15 +45,26 @@ def lost_cameras(meta: Mapping) -> set[str]:
     return {cam for cam, c in camera_entries(meta).items() if c.get("status", "ok") != "ok"}
 
 
+def _count(take: Take, cam: str, path: Path) -> tuple[int, str | None]:
+    """A video's complete frames and why there may be fewer; a video that is not Matroska (an
+    imported release's AVI) is counted by reading its packets, still without decoding."""
+    if path.suffix == ".mkv":
+        return count_frames(path)
+    try:
+        return sum(1 for _ in take.packets(cam)), None
+    except TakeError as exc:
+        return 0, str(exc)
+
+
 def _video(take: Take, cam: str, rows: int, files: TakeFiles, recovered: bool) -> None:
-    name = f"cams/{cam}.mkv"
-    path = take.path / name
+    path = take.video_file(cam)
+    name = path.relative_to(take.path).as_posix() if path.is_relative_to(take.path) else str(path)
     entry = files.cameras[cam]
     if not path.is_file():
         entry.update(video_frames=None, video_problem="missing")
         files.reasons.append(f"{cam}: {name} missing ({rows} frames.csv rows have no image)")
         return
-    frames, problem = count_frames(path)
+    frames, problem = _count(take, cam, path)
     entry.update(video_frames=frames, video_problem=problem)
     why = f" ({problem})" if problem else ""
     if frames < rows:

@@ -28,6 +28,8 @@ GROUPS_FILE = "frame_groups.npz"
 GROUPS_VERSION = 1
 SYNC_METHOD = "sync (fitted device clocks)"
 HOST_METHOD = "host-time rounding (frames.csv)"
+# an imported release's own alignment (its synced videos are index-aligned): the sync report keeps it
+RELEASE_METHOD = "release (synced videos, index-aligned)"
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,7 +21,7 @@ from manus_core.take import Take
 from .analysis import SYNC_MODES, SyncResult, SyncSettings, analyze_sync
 from .files import camera_entries, check_files, lost_cameras
 from .grouping import group_frames
-from .groups_file import GROUPS_FILE, HOST_METHOD, SYNC_METHOD, TakeGroups, load_groups, save_groups
+from .groups_file import GROUPS_FILE, HOST_METHOD, RELEASE_METHOD, SYNC_METHOD, TakeGroups, load_groups, save_groups
 from .optical import BrightnessFn, Flash, led_flashes, optical_check
 from .report import build_report, report_markdown, timeline_png
 
@@ -175,16 +175,23 @@ def refuse_overwrite(take_path: Path, force: bool) -> Path:
 def sync_take(path: str | Path, *, force: bool = False, latency_ns: Mapping[str, float] | None = None,
               optical: bool = True, settings: SyncSettings | None = None, progress: Progress = silent) -> dict:
     """Validate a take and write TAKE/sync_report.json, sync_report.md, sync_timeline.png and the
-    frame groups the report measured (frame_groups.npz, which later stages read).
+    frame groups the report measured (frame_groups.npz, which later stages read). An imported
+    release's own groups (RELEASE_METHOD) are kept: the release's videos define its alignment.
 
     Refuses (SyncReportExists) to replace an existing report unless `force`; each file is written
     atomically, the JSON last, so a report on disk always has its companions."""
     take = Take(path)
     target = refuse_overwrite(take.path, force)
     result, report, latency = _validate(take, latency_ns, optical, settings, progress)
-    report["frame_groups"] = GROUPS_FILE
+    try:
+        kept = load_groups(take)
+    except SyncError:   # made from another frames.csv: replaced below
+        kept = None
+    release = kept is not None and kept.method == RELEASE_METHOD
+    report["frame_groups"] = f"{GROUPS_FILE} ({RELEASE_METHOD}, kept)" if release else GROUPS_FILE
     write_atomic(take.path / "sync_timeline.png", timeline_png(result, take_flashes(take)))
     write_atomic(take.path / "sync_report.md", report_markdown(report).encode())
-    save_groups(take.path, _sync_groups(take, result, latency))
+    if not release:
+        save_groups(take.path, _sync_groups(take, result, latency))
     write_atomic(target, (json.dumps(report, indent=1) + "\n").encode())
     return report

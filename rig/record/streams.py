@@ -4,9 +4,9 @@ A reader only pulls frames from its camera and never waits on the disk: a full r
 frame (counted as an overflow, visible as a sequence gap) rather than stalling the camera's own
 buffers. The one exception is a simulated camera on a fast virtual clock: it has no real time to
 keep, so its reader waits for the writer; otherwise a loaded machine would lose frames that a
-real camera at that rate would not. A writer muxes the JPEG bytes as they came (raw frames from machine-vision cameras are
-JPEG-encoded first) and appends the frame's row to frames.csv only after its packet is written,
-so that rows and packets agree.
+real camera at that rate would not. A writer muxes the JPEG bytes as they came (raw frames from
+machine-vision cameras are JPEG-encoded first) and appends the frame's row to frames.csv only
+after its packet is written, so that rows and packets agree.
 """
 
 from __future__ import annotations

@@ -159,9 +159,10 @@ def read_colmap(folder: Path, units: str | None) -> CameraRig:
     return build(str(folder), ids, K, dist, R, t, size)
 
 
-def write_colmap(rig: CameraRig, folder: Path, lossy: bool) -> None:
+def write_colmap(rig: CameraRig, folder: Path, lossy: bool, image_suffix: str = ".jpg") -> None:
     """The rig as a COLMAP text model in `folder`: one camera (OPENCV, or FULL_OPENCV when k3 is
-    not 0), one image CAMERA_ID.jpg and one trivial rig and frame per camera; each file atomically."""
+    not 0), one image CAMERA_ID + image_suffix and one trivial rig and frame per camera; each file
+    atomically."""
     require_representable(rig, folder, "COLMAP", lossy, skew=True, k3=False)
     plain_ids(rig, folder, "COLMAP")
     rec = pycolmap.Reconstruction()
@@ -175,7 +176,8 @@ def write_colmap(rig: CameraRig, folder: Path, lossy: bool) -> None:
                                                         height=int(rig.size[i, 1]), params=params, camera_id=i + 1))
         q = matrix_to_quat(rig.R[i])
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(q[[1, 2, 3, 0]]), rig.t[i])  # pycolmap takes x, y, z, w
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{cam_id}.jpg", camera_id=i + 1, image_id=i + 1), pose)
+        image = pycolmap.Image(name=f"{cam_id}{image_suffix}", camera_id=i + 1, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pose)
     with tempfile.TemporaryDirectory(prefix="colmap-text-") as tmp:
         rec.write_text(tmp)
         for path in sorted(Path(tmp).iterdir()):

@@ -1,0 +1,1 @@
+"""Release layouts other tools read and write: MANUS/BRICS releases, nerfstudio and COLMAP."""

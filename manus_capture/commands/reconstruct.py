@@ -309,7 +309,8 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     test_rows = [i for i in range(len(frames)) if i not in train_rows]
     if test_rows:
         scores = evaluate_hand(model, angles[test_rows], [views[i] for i in test_rows], bg, cfg.eps2d)
-        summary += f"; {len(test_rows)} held-out poses: " + _scores_text(scores)
+        summary += f"; {len(test_rows)} held-out poses: " + (
+            _scores_text(scores) if scores else "no view of them to score (none with the hand in its mask)")
     click.echo(summary)
 
 

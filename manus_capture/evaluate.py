@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import torch
 
+from dataset_tools.undistort import undistort_points
 from manus_core.cameras import CameraRig, scale_intrinsics
 from manus_core.errors import EvaluateError
 
@@ -100,8 +101,13 @@ def to_raw_pixels(images: np.ndarray, rig: CameraRig) -> np.ndarray:
         if not np.any(rig.dist[i]):
             out[i] = image
             continue
-        grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), -1)
-        ideal = cv2.undistortPoints(grid.reshape(-1, 1, 2), rig.K[i], rig.dist[i], P=rig.K[i]).reshape(h, w, 2)
+        grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1)
+        # Newton's undistortion: OpenCV's default 5 fixed-point steps are pixels off near the
+        # corners of a strongly barrel-distorted lens
+        xy = undistort_points(rig.subset([rig.ids[i]]), grid.reshape(1, -1, 2))[0]
+        K = rig.K[i]
+        ideal = np.stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2], K[1, 1] * xy[:, 1] + K[1, 2]], -1)
+        ideal = np.nan_to_num(ideal, nan=-1.0).astype(np.float32).reshape(h, w, 2)
         out[i] = cv2.remap(image.astype(np.float32), ideal[..., 0], ideal[..., 1], cv2.INTER_LINEAR,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return out

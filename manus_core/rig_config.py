@@ -33,6 +33,7 @@ SIM_SUBJECTS = ("s01", "s02", "s03")
 Vector3 = tuple[Float, Float, Float]
 Level = between(Float, 0, 1)
 Side = between(Int, MIN_SIDE, MAX_SIDE, "pixels")
+Offset = between(Float, -0.1, 0.1, "of the image's side")
 Rate = between(Float, 0, MAX_FPS, "frames per second", low_open=True)
 Milliseconds = between(Float, 0, 1000, "ms")
 Microseconds = between(Float, 0, 1e6, "us")
@@ -49,7 +50,11 @@ class SimCameraConfig:
     look_at: Vector3 = (0.0, 0.0, 0.0)
     up: Vector3 = (0.0, 0.0, 1.0)
     hfov_deg: between(Float, 0, 180, "degrees", low_open=True, high_open=True) = 70.0
-    dist: tuple[Float, Float, Float, Float, Float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    # the principal point's offset from the image centre, as fractions of width and height: real
+    # sensors sit a little off their lens's axis, and a calibration must find where
+    principal_offset: tuple[Offset, Offset] = (0.0, 0.0)
+    aspect: between(Float, 0.9, 1.1) = 1.0   # fy / fx: pixels are square only to a tolerance
+    dist: tuple[Float, Float, Float, Float, Float] = (0.0, 0.0, 0.0, 0.0, 0.0)   # k1, k2, p1, p2, k3
     # device clock minus host clock at the take's start
     clock_offset_ms: between(Float, -1e6, 1e6, "ms") = 0.0
     # device clock rate error; the sync report takes more than 1000 ppm for timestamps in another unit

@@ -73,12 +73,58 @@ def r(x: float) -> float:
     return round(float(x), 4)
 
 
+# The optics draw from a stream of their own, so that adding them (issue 19) left every value the
+# main stream gives (positions, clocks, field of view, drops) as it was for the same seed.
+OPTICS_STREAM = 19
+K1_RANGE = (-0.3, 0.1)              # strong barrel to mild pincushion, as lenses of real rigs come
+K2_RANGE = (0.0, 0.05)              # redrawn until the lens is invertible (lens_is_invertible)
+TANGENTIAL_SIGMA = 0.0015           # p1, p2: a slightly tilted sensor
+PRINCIPAL_OFFSET = 0.02             # off the image centre, up to this fraction of each side
+ASPECT_RANGE = (0.995, 1.005)       # fy / fx
+MIN_SLOPE = 0.1                     # of the radial map, d r_distorted / d r
+MAX_INCIDENCE_DEG = 89.0            # the widest angle off the axis at which a point lies in view
+
+
+def lens_is_invertible(k1: float, k2: float) -> bool:
+    """Whether r -> r (1 + k1 r^2 + k2 r^4) rises (slope >= MIN_SLOPE) out to MAX_INCIDENCE_DEG.
+
+    Rising only up to the image's corners is not enough: CameraRig.project applies the polynomial
+    to any point in front of the camera, and past a fold a point far outside the field of view
+    (the next wall, beside the camera) would project back into the image, where the renderer,
+    which casts rays from the pixels, never shows it. The margin keeps the undistortion of the
+    image's corners well conditioned.
+    """
+    rho2 = np.linspace(0.0, np.tan(np.radians(MAX_INCIDENCE_DEG)), 20001) ** 2
+    return bool(np.all(1 + rho2 * (3 * k1 + 5 * k2 * rho2) >= MIN_SLOPE))
+
+
+def draw_optics(rng: np.random.Generator) -> dict:
+    """One camera's true intrinsics beyond the field of view, as SimCameraConfig fields.
+
+    No camera matches a nominal model (centred principal point, square pixels, no distortion):
+    a calibration that estimates intrinsics is tested against cameras that differ from any.
+    """
+    aspect = r(rng.uniform(*ASPECT_RANGE))
+    offset = (r(rng.uniform(-PRINCIPAL_OFFSET, PRINCIPAL_OFFSET)), r(rng.uniform(-PRINCIPAL_OFFSET, PRINCIPAL_OFFSET)))
+    k1 = r(rng.uniform(*K1_RANGE))
+    for _ in range(1000):   # k2 within reach for every k1 of K1_RANGE: about 1 in 10 at k1 = -0.3
+        k2 = r(rng.uniform(*K2_RANGE))
+        if lens_is_invertible(k1, k2):
+            break
+    else:
+        raise AssertionError(f"no k2 in {K2_RANGE} makes k1 = {k1} invertible")
+    p1, p2 = (r(rng.normal(0, TANGENTIAL_SIGMA)) for _ in range(2))
+    return {"aspect": aspect, "principal_offset": offset, "dist": (k1, k2, p1, p2, 0.0)}
+
+
 def make_rig(layout: str = "cube53", cameras: int | None = None, resolution: tuple[int, int] = (1280, 720),
              fps: float = 120.0, backend: str = "sim", seed: int = 0, sync: str = "free-run",
              name: str | None = None) -> RigConfig:
     """A rig configuration for a layout. The sim backend gets realistic, seeded imperfections:
     clock offsets of a few ms, drifts of tens of ppm, jitter, trigger latency, a small drop rate,
-    and a little lens distortion; every value is written out so that it can be edited."""
+    and per camera optics (draw_optics): a focal length spread of a few percent, the principal
+    point off centre, non-square pixels, radial and tangential distortion. Every value is written
+    out so that it can be edited."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
     ids, pos, ups, aims = LAYOUTS[layout]()
@@ -88,16 +134,20 @@ def make_rig(layout: str = "cube53", cameras: int | None = None, resolution: tup
         keep = spread_subset(pos, cameras)
         ids, pos, ups, aims = [ids[i] for i in keep], pos[keep], ups[keep], aims[keep]
     rng = np.random.default_rng(seed)
+    optics_rng = np.random.default_rng([seed, OPTICS_STREAM])
     period_ms = 1000.0 / fps
     width, height = resolution
     cams = []
     for k, (cam_id, p, up, aim) in enumerate(zip(ids, pos, ups, aims)):
         sim = None
         if backend == "sim":
+            hfov = r(rng.uniform(72, 78))
+            # the main stream's old distortion draws, still made and unused so that the clocks and
+            # drops after them keep their values for a seed (tests and saved rigs rely on them)
+            rng.normal(0, (0.03, 0.01))
             sim = SimCameraConfig(
                 position=tuple(r(x) for x in p), look_at=tuple(float(x) for x in aim), up=tuple(float(x) for x in up),
-                hfov_deg=r(rng.uniform(72, 78)),
-                dist=(r(rng.normal(0, 0.03)), r(rng.normal(0, 0.01)), 0.0, 0.0, 0.0),
+                hfov_deg=hfov, **draw_optics(optics_rng),
                 clock_offset_ms=r(rng.uniform(-5, 5)), drift_ppm=r(rng.normal(0, 25)),
                 phase_ms=r(rng.uniform(0, period_ms)), timestamp_jitter_us=20.0,
                 trigger_latency_us=r(rng.uniform(80, 250)), trigger_jitter_us=30.0,

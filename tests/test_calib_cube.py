@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tomllib
 
 import numpy as np
 import pytest
+import tomli_w
 
 from dataset_tools.calibration.boards import tags_from_dict
 from dataset_tools.calibration.formats import load_cameras
@@ -77,19 +79,71 @@ def test_cameras_without_tags_are_placed_from_the_scene(cube):
     views = {**images, **into_table}
     result = calibrate_rig(views, tags=layout, intrinsics=truth, method="tags", workers=1)
     assert not result.partial and len(result.rig) == 53
-    assert sorted(result.extra["scene_points"]) == sorted(INTO_THE_TABLE)
+    scene = sorted(result.extra["scene_points"])
+    # z-10 and z-12 see no tag; z-01 sees one whole tag; z-21's wider lens (k1 -0.22) takes in three
+    assert {"z-10", "z-12", "z-01"} <= set(scene) <= set(INTO_THE_TABLE), scene
     assert all(v["points"] >= 30 for v in result.extra["scene_points"].values())
     centre_mm, rot_deg = errors(result, truth)
-    # z-01 and z-21 see one whole tag: its corners, weighted by their precision, with the scene's
-    # points hold them within the bounds of the tag cameras (0.9 and 1.3 mm measured)
+    # z-01 sees one whole tag and z-21 three: its corners, weighted by their precision, with the
+    # scene's points hold them within the bounds of the tag cameras
     assert max(centre_mm["z-01"], centre_mm["z-21"]) < 2.0, {c: round(centre_mm[c], 2) for c in INTO_THE_TABLE}
     assert max(rot_deg["z-01"], rot_deg["z-21"]) < 0.1
-    # z-10 and z-12 see no tag: scene points alone, millimetres (4.5 and 6.5 mm measured; COLMAP
-    # put one of them 22 mm off)
-    assert max(centre_mm[c] for c in INTO_THE_TABLE) < 10.0, {c: round(centre_mm[c], 2) for c in INTO_THE_TABLE}
-    assert max(rot_deg[c] for c in INTO_THE_TABLE) < 0.5
+    # z-10 and z-12 see no tag: scene points alone, millimetres. 4.9 and 12.4 mm measured since the
+    # sim's lenses vary (issue 19; 6.5 and 4.5 mm with centred, nearly undistorted lenses): z-10 now
+    # matches 69 points over 13 % of its image. COLMAP put one of them 22 mm off.
+    assert max(centre_mm[c] for c in INTO_THE_TABLE) < 15.0, {c: round(centre_mm[c], 2) for c in INTO_THE_TABLE}
+    assert max(rot_deg[c] for c in INTO_THE_TABLE) < 0.6   # 0.55 deg measured on z-10
     # and the cameras placed by tags are not disturbed by them
     assert max(e for c, e in centre_mm.items() if c not in INTO_THE_TABLE) < 2.0
+
+
+# --- intrinsics from the tags (issue 19) -----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def dense_cube():
+    """The cube at 640x360 with the walls a lab would tag for calibrating intrinsics too (8 x 8
+    tags of 9 cm a wall, docs/calibration.md), rendered through the sim's true cameras, whose
+    intrinsics differ camera by camera from any nominal value."""
+    world = World(tags_per_wall=8, tag_size=0.09)
+    truth = true_cameras(make_rig(resolution=(640, 360), seed=1))
+    renderer = Renderer(world, truth, supersample=1)
+    images = {c: [(renderer.background(truth.index(c))[0] * 255).round().astype(np.uint8)] for c in truth.ids}
+    return truth, images, tags_from_dict(world.tags_json())
+
+
+def test_53_cameras_intrinsics_and_poses_from_the_tags_alone(dense_cube):
+    """No intrinsics file, no board: every camera's K, distortion and pose from the tags it sees.
+    Every camera the report does not name as weakly constrained meets the issue's bounds; the
+    two that look into the table's side see corners on little more than one wall and are named."""
+    truth, images, layout = dense_cube
+    spread = truth.K[:, 0, 0] / truth.size[:, 0]
+    assert spread.max() / spread.min() > 1.03 and np.abs(truth.dist[:, 0]).max() > 0.2   # not a nominal rig
+    assert np.abs(truth.K[:, :2, 2] - (truth.size - 1) / 2).max() > 5
+    result = calibrate_rig(images, tags=layout, method="tags", workers=1)
+    assert not result.partial and sorted(result.rig.ids) == sorted(truth.ids)
+    est, ref = result.rig, truth.subset(result.rig.ids)
+    info = result.extra["intrinsics"]
+    weak = sorted(c for c, e in info.items() if e["weak"])
+    # a camera whose tags lie on one wall gets the others' median focal length, and is named
+    assert set(info) == set(est.ids) and all(info[c]["model"] or c in weak for c in est.ids)
+    assert len(weak) <= 3, weak
+    fx = np.abs(est.K[:, 0, 0] / ref.K[:, 0, 0] - 1)
+    fy = np.abs(est.K[:, 1, 1] / ref.K[:, 1, 1] - 1)
+    pp = np.abs(est.K[:, :2, 2] - ref.K[:, :2, 2]).max(axis=1)
+    centre_mm = np.linalg.norm(est.centers - ref.centers, axis=1) * 1000
+    rot = rotation_angle_deg(est.R, ref.R)
+    X = np.random.default_rng(0).uniform(-0.3, 0.3, (2000, 3))     # the capture volume
+    seen = ref.project(X)
+    inside = (seen >= 0).all(-1) & (seen < ref.size[:, None]).all(-1)
+    reproj = np.where(inside, np.linalg.norm(est.project(X) - seen, axis=-1), np.nan)
+    reproj = np.nanmedian(reproj, axis=1)
+    bad = {c: dict(fx_pct=round(100 * fx[i], 3), fy_pct=round(100 * fy[i], 3), pp_px=round(pp[i], 2),
+                   centre_mm=round(centre_mm[i], 2), rot_deg=round(rot[i], 3), reproj_px=round(reproj[i], 3))
+           for i, c in enumerate(est.ids) if c not in weak and not (
+               fx[i] < 0.003 and fy[i] < 0.003 and pp[i] < 1.0 and centre_mm[i] < 2.0 and rot[i] < 0.1
+               and reproj[i] < 0.3)}
+    assert not bad, bad
+    assert abs(result.extra["checks"]["scale"]["error_pct"]) < 0.1
 
 
 # --- a recorded take, through the command line ---------------------------------------------------
@@ -155,3 +209,51 @@ def test_every_export_of_the_take_round_trips(recorded, export):
     back = load_cameras(out / export).subset(ref.ids)
     X = np.random.default_rng(0).uniform(-0.4, 0.4, (50, 3))
     assert np.nanmax(np.abs(back.project(X) - ref.project(X))) < 1e-3
+
+
+@pytest.fixture(scope="module")
+def recorded_alone(tmp_path_factory):
+    """The 12 cameras' calibration take again, on walls tagged 8 x 8, calibrated by `manus-capture
+    calibrate rig TAKE -o CAL` and nothing else, from a copy of the take without ground_truth.h5
+    and a session.toml without any [sim] table: the calibration cannot read the truth."""
+    from click.testing import CliRunner
+
+    from manus_capture.cli import cli
+    from manus_core.cameras import CameraRig
+    from rig.record import record_take
+
+    root = tmp_path_factory.mktemp("calib-alone")
+    config = recording_rig()
+    config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, tags_per_wall=8, tag_size=0.09))
+    record_take(config, root / "session", "calib", "calibration", 0.05)
+    take = root / "session" / "calib"
+    truth = CameraRig(*_ground_truth(take), [[480, 270]] * len(config.cameras))
+    (take / "ground_truth.h5").unlink()
+    doc = tomllib.loads((root / "session" / "session.toml").read_text())
+    doc.pop("sim", None)
+    for cam in doc.get("cameras", []):
+        cam.pop("sim", None)
+    (root / "session" / "session.toml").write_text(tomli_w.dumps(doc))
+    out = root / "cal"
+    res = CliRunner().invoke(cli, ["calibrate", "rig", str(take), "--workers", "1", "-o", str(out)])
+    return res, out, truth
+
+
+def test_calibrate_rig_needs_nothing_but_the_take(recorded_alone):
+    res, out, truth = recorded_alone
+    assert res.exit_code == 0, res.output
+    assert "12 cameras" in res.stdout and "intrinsics from the tags: 12 cameras" in res.stdout
+    est = load_cameras(out / "cameras.json")
+    ref = truth.subset(est.ids)
+    report = json.loads((out / "report.json").read_text())
+    weak = sorted(c for c, e in report["details"]["intrinsics"].items() if e["weak"])
+    assert all(f"warning: camera {c}: weakly constrained" in res.stderr for c in weak)
+    keep = [i for i, c in enumerate(est.ids) if c not in weak]
+    assert len(keep) >= 10, weak
+    fx = np.abs(est.K[keep, 0, 0] / ref.K[keep, 0, 0] - 1)
+    centre_mm = np.linalg.norm(est.centers[keep] - ref.centers[keep], axis=1) * 1000
+    assert fx.max() < 0.003 and centre_mm.max() < 2.0, (fx.round(4), centre_mm.round(2))
+    assert np.abs(est.K[keep, :2, 2] - ref.K[keep, :2, 2]).max() < 1.0
+    assert rotation_angle_deg(est.R[keep], ref.R[keep]).max() < 0.1
+    assert "Intrinsics estimated from the tags" in (out / "report.md").read_text()
+

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tomli_w
 from click.testing import CliRunner
 
 from dataset_tools.calibration.boards import load_board, load_tags
@@ -18,7 +19,7 @@ from dataset_tools.hand.bones import BONE_NAMES, BoneLengths, load_subject, save
 from dataset_tools.keypoints.models import load_spec
 from manus_capture.cli import cli
 from manus_core.errors import BoardError, BoneLengthError, ConfigError, ModelError
-from manus_core.rig_config import SIM_SUBJECTS, load_rig, rig_to_toml
+from manus_core.rig_config import SIM_SUBJECTS, load_rig, rig_to_dict, rig_to_toml
 from manus_core.skeleton import DEFAULT_BONE_LENGTHS
 from rig.layouts import make_rig
 from rig.sim.hand import SUBJECTS
@@ -129,6 +130,13 @@ BAD_VALUES = [
     (sim_camera(drop_rate=2.0), "cameras[0].sim.drop_rate", "must be in [0, 1), got 2.0"),
     (sim_camera(hfov_deg=0), "cameras[0].sim.hfov_deg", "must be in (0, 180) degrees, got 0"),
     (sim_camera(drift_ppm=float("nan")), "cameras[0].sim.drift_ppm", "must be in [-1000, 1000] ppm, got nan"),
+    (sim_camera(aspect=1.5), "cameras[0].sim.aspect", "must be in [0.9, 1.1], got 1.5"),
+    (sim_camera(aspect=0), "cameras[0].sim.aspect", "must be in [0.9, 1.1], got 0"),
+    (sim_camera(principal_offset=(0.5, 0.0)), "cameras[0].sim.principal_offset[0]",
+     "must be in [-0.1, 0.1] of the image's side, got 0.5"),
+    (sim_camera(principal_offset=(0.0, float("inf"))), "cameras[0].sim.principal_offset[1]",
+     "must be in [-0.1, 0.1] of the image's side, got inf"),
+    (sim_camera(principal_offset=(0.01,)), "cameras[0].sim.principal_offset[1]", "missing"),
     (sim_camera(latency_ms=-2), "cameras[0].sim.latency_ms", "must be in [0, 1000] ms, got -2"),
     (sim_camera(look_at=(0.55, 0.0, 0.0)), "cameras[0].sim.look_at",
      "must differ from the camera's position, got [0.55, 0.0, 0.0]"),
@@ -335,3 +343,18 @@ def test_model_spec_values(tmp_path, text, words):
         load_spec(path)
     assert str(err.value).startswith(f"{path}: {words}"), err.value
     assert err.value.exit_code == 2
+
+
+def test_sim_optics_default_to_a_centred_square_pixel_camera(tmp_path):
+    """A rig.toml written before the sim cameras had principal_offset and aspect keeps meaning what
+    it meant: the principal point at the image centre, fx == fy."""
+    from rig.sim.cube import true_cameras
+
+    doc = rig_to_dict(make_rig("cube53", cameras=2, resolution=(64, 36)))
+    for cam in doc["cameras"]:
+        del cam["sim"]["principal_offset"], cam["sim"]["aspect"]
+    rig = load_rig(write(tmp_path, tomli_w.dumps(doc)))
+    assert all(c.sim.aspect == 1.0 and c.sim.principal_offset == (0.0, 0.0) for c in rig.cameras)
+    K = true_cameras(rig).K
+    np.testing.assert_array_equal(K[:, 0, 0], K[:, 1, 1])
+    np.testing.assert_array_equal(K[:, :2, 2], [[31.5, 17.5], [31.5, 17.5]])

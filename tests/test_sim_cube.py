@@ -50,6 +50,56 @@ def test_clock_model_follows_offset_drift_and_jitter():
     assert np.array_equal(clock.device_ns(exposure[::-1], k[::-1]), device[::-1])
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_true_intrinsics_differ_from_any_nominal_camera(seed):
+    """Issue 19: a calibration that estimates intrinsics must not be handed cameras that match a
+    nominal model; the realized optics spread the way real cameras' do."""
+    rig = make_rig("cube53", resolution=(1280, 720), seed=seed)
+    cams = true_cameras(rig)
+    K, (k1, k2, p1, p2, k3) = cams.K, cams.dist.T
+    fx, aspect = K[:, 0, 0], K[:, 1, 1] / K[:, 0, 0]
+    off_x, off_y = K[:, 0, 2] - 639.5, K[:, 1, 2] - 359.5
+    assert 1.05 < fx.max() / fx.min() < 1.15                      # a few percent of focal spread
+    assert np.all(np.abs(aspect - 1) <= 0.005) and np.ptp(aspect) > 0.005
+    assert np.all(np.abs(off_x) <= 0.02 * 1280 + 1e-9) and np.all(np.abs(off_y) <= 0.02 * 720 + 1e-9)
+    assert np.ptp(off_x) > 30 and np.ptp(off_y) > 15 and np.count_nonzero(np.hypot(off_x, off_y) < 1) <= 1
+    assert -0.3 <= k1.min() < -0.25 and 0.05 < k1.max() <= 0.1
+    assert np.all((k2 >= 0) & (k2 <= 0.05)) and np.all(k3 == 0)
+    assert 0.001 < np.std(np.concatenate([p1, p2])) < 0.002
+    # the configured values are the realized ones
+    sim = rig.cameras[0].sim
+    assert K[0, 1, 1] == pytest.approx(sim.aspect * K[0, 0, 0])
+    assert K[0, 0, 2] == pytest.approx(639.5 + 1280 * sim.principal_offset[0])
+
+
+def test_lens_distortion_never_folds_back_into_the_image():
+    """Along every ray from the axis towards an image corner, out to 89 degrees off the axis, the
+    distorted point moves outwards: each pixel sees one direction, and no point outside the field
+    of view (the next wall, beside the camera) projects into the image."""
+    for seed in range(4):
+        cams = true_cameras(make_rig("cube53", resolution=(1280, 720), seed=seed))
+        for c in range(len(cams)):
+            w, h = cams.size[c]
+            corners = np.array([[0, 0], [w, 0], [0, h], [w, h]], float) - cams.K[c, :2, 2]
+            directions = corners / np.linalg.norm(corners, axis=1, keepdims=True)
+            rho = np.linspace(0, np.tan(np.radians(89)), 5000)
+            xy = rho[None, :, None] * directions[:, None, :]                    # (4, R, 2)
+            xd = cams.subset([cams.ids[c]]).distort(xy.reshape(1, -1, 2))[0].reshape(xy.shape)
+            along = np.einsum("crk,ck->cr", xd, directions)
+            assert np.all(np.diff(along, axis=1) > 0), (cams.ids[c], cams.dist[c])
+            reach = along[:, -1] * cams.K[c, 0, 0]
+            assert np.all(reach > np.linalg.norm(corners, axis=1)), cams.ids[c]
+
+
+def test_the_optics_leave_every_other_drawn_value_as_it_was():
+    """The optics draw from a stream of their own: the clocks, poses and fields of view of a seed
+    are those rigs made before them had (tests and saved rigs rely on them)."""
+    rig = make_rig("cube53", seed=0)
+    first, last = rig.cameras[0].sim, rig.cameras[-1].sim
+    assert (first.hfov_deg, first.clock_offset_ms, first.phase_ms) == (75.8218, -4.8347, 7.6063)
+    assert (last.hfov_deg, last.clock_offset_ms, last.phase_ms) == (75.1697, -3.2992, 4.4658)
+
+
 def test_camera_stream_drops_are_gaps_and_all_in_ground_truth(tmp_path):
     rig = with_camera_params(small_rig(), drop_rate=0.08)
     cube = SimulatedCube(rig, "calibration", duration_s=1.0)
@@ -155,6 +205,7 @@ def test_grasp_ground_truth_is_complete(grasp_truth):
     assert gt.hand.joints3d.shape == (F, 21, 3) and gt.hand.joint_angles.shape == (F, 26)
     assert gt.hand.bone_lengths.shape == (20,)
     assert np.allclose(gt.cameras.K, cams.K) and np.allclose(gt.cameras.t, cams.t)
+    assert np.array_equal(gt.cameras.dist, cams.dist)
     P = gt.contact.points_rest.shape[0]
     assert gt.contact.instant.shape == (F, P)
     accumulated = gt.contact.accumulated

@@ -23,6 +23,7 @@ import numpy as np
 from manus_core.cameras import CameraRig
 
 from ..triangulation import triangulate
+from .tag_edges import UNDISTORT_CRITERIA
 
 RATIO = 0.75           # Lowe's ratio test
 MIN_PAIR_MATCHES = 15  # fewer verified matches with one camera: that camera does not share the view
@@ -49,7 +50,7 @@ def _features(gray: np.ndarray, max_features: int) -> tuple[np.ndarray, np.ndarr
 
 
 def _undistorted(xy: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+    return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, dist, P=K, criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
 
 
 def _verified_matches(xy_a, des_a, xy_b, des_b, Ka, da, Kb, db) -> tuple[np.ndarray, np.ndarray]:

@@ -147,6 +147,19 @@ def report_markdown(report: dict) -> str:
     for cam, c in report["cameras"].items():
         lines.append(f"| {cam} | {c['rms_px']} | {c['median_px']} | {c['observations']} | {c['frames']} | "
                      f"{c['coverage']:.2f} | {c['fx']:.1f} | {c['fy']:.1f} |")
+    estimated = report["details"].get("intrinsics", {})
+    if estimated:
+        weak = {c: e["weak"] for c, e in estimated.items() if e.get("weak")}
+        lines += ["", "## Intrinsics estimated from the tags", ""]
+        lines += [f"- **warning**, `{c}` is weakly constrained: {'; '.join(w)}. Aim it at more tags, or wave a "
+                  "board in front of it and pass --board." for c, w in weak.items()]
+        lines += ["", "| camera | model | corners | reach | sd fx px | sd cx px | sd cy px | sd k1 | sd centre mm |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for cam, e in estimated.items():
+            sd = e.get("sd")
+            cells = [f"{sd[k]:.3g}" for k in ("fx", "cx", "cy", "k1", "centre_mm")] if sd else ["-"] * 5
+            lines.append(f"| {cam} | {e.get('model') or 'borrowed'} | {e.get('points', '-')} | {e.get('reach', '-')} | "
+                         + " | ".join(cells) + " |")
     lines += ["", "A good calibration: RMS below 0.5 px on every camera (below 1 px with webcams and motion),",
               "coverage above 0.3, the scale check within 0.5 %. See docs/calibration.md.", ""]
     return "\n".join(lines)

@@ -8,8 +8,9 @@ Methods:
 - "both": COLMAP and tags; cameras short of tags that the scene features cannot place keep their
   COLMAP pose inside the tag adjustment, and the report compares the two methods camera by camera;
 - "auto": tags when a tag layout is given, else board.
-Intrinsics are fixed from a file (--intrinsics), or calibrated per camera from a board seen in
-the same take.
+Intrinsics are fixed from a file (--intrinsics), calibrated per camera from a board seen in the
+same take, or, with neither, estimated per camera from the tags it sees and adjusted with its
+pose (tag_intrinsics); the report gives their standard deviations and names weak cameras.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from .frames import FrameSource, read_frames, subsample, unreadable
 from .intrinsics import calibrate_intrinsics
 from .report import build_report, cross_check, scale_check, write_report
 from .result import RigCalibration, require_all
+from .tag_intrinsics import TagIntrinsics, corner_table, estimate_intrinsics, without_small_tags
 from .tag_rig import SceneCallback, calibrate_tag_rig, evaluate_tag_rig
 
 METHODS = ("auto", "tags", "board", "colmap", "both")
@@ -106,6 +108,13 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
         checks["scale"] = scale_check(result, target.neighbour_pairs(), target.neighbour_distance())
     else:
         intr = fixed if fixed is not None else _board_intrinsics(board_dets, sizes, target, problems)
+        estimated: dict[str, TagIntrinsics | str] = {}
+        if not intr:
+            # no file and no board: every camera's intrinsics from the tags it sees (as MANUS did)
+            first = {c: subsample(sources[c], tag_frames) for c in cams if c not in problems}
+            found, first_sizes = detect_cameras(first, TagDetector(layout.dictionary), workers, progress)
+            estimated = _estimate(found, first_sizes, layout)
+            intr = _with_borrowed(estimated, first_sizes)
         if not intr:
             raise CalibrationError("no camera has intrinsics: pass --intrinsics FILE or a --board seen in the take"
                                    + (f" ({'; '.join(f'{c}: {m}' for c, m in problems.items())})" if problems else ""))
@@ -114,6 +123,14 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
         detectors = {c: TagDetector(layout.dictionary, K=intr[c][0], dist=intr[c][1]) for c in tag_src}
         tag_dets, tag_sizes = detect_cameras(tag_src, detectors, workers, progress)
         _check_sizes(tag_sizes, intr)
+        if estimated:
+            # the corners found with the first estimate straighten the tags' edges: estimate again
+            estimated = {c: e if isinstance(e, str) else _estimate({c: tag_dets[c]}, tag_sizes, layout)[c]
+                         for c, e in estimated.items() if c in tag_dets}
+            intr = _with_borrowed(estimated, tag_sizes)
+            # the adjustment estimates intrinsics from the same corners the estimate trusted
+            tag_dets = {c: without_small_tags(d) if isinstance(estimated.get(c), TagIntrinsics) else d
+                        for c, d in tag_dets.items()}
         initial, colmap_rig = {}, None
         if method in ("colmap", "both"):
             progress("COLMAP: features, matching, mapping", 0, 1)
@@ -136,12 +153,16 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
             progress("tag PnP and bundle adjustment", 0, 1)
             result = calibrate_tag_rig(tag_dets, tag_sizes, layout, intr, refine_tags=refine_tags,
                                        allow_partial=allow_partial, initial_poses=initial or None,
-                                       scene=_scene(tag_src, tag_dets, progress))
+                                       scene=_scene(tag_src, tag_dets, progress),
+                                       free_intrinsics={c: e.free() for c, e in estimated.items()
+                                                        if isinstance(e, TagIntrinsics)})
             result = _with_missing(result, problems)
             if colmap_rig is not None:
                 checks["cross_check"] = cross_check(evaluate_tag_rig(colmap_rig, tag_dets, layout, "colmap"), result)
                 result = replace(result, method="both")
         checks["scale"] = scale_check(result, layout.edge_pairs(), layout.size, static=True)
+        if estimated:
+            result.extra["intrinsics"] = _intrinsics_record(estimated, result.extra.get("intrinsics", {}))
     result.extra["checks"] = checks
     report = build_report(result, inputs, checks)
     if output is not None:
@@ -235,6 +256,42 @@ def _board_intrinsics(dets, sizes, board, problems) -> dict[str, tuple[np.ndarra
             problems[cam] = exc.reason
             continue
         out[cam] = (res.K, res.dist)
+    return out
+
+
+def _estimate(dets: dict[str, dict[int, Detection]], sizes: dict[str, tuple[int, int]], layout: TagLayout
+              ) -> dict[str, TagIntrinsics | str]:
+    """Each camera's intrinsics from its tag corners (tag_intrinsics), or why they cannot be had."""
+    pid, world = layout.points()
+    lookup = {int(p): i for i, p in enumerate(pid)}
+    return {c: estimate_intrinsics(*corner_table(d, lookup, world), sizes[c]) for c, d in dets.items()}
+
+
+def _with_borrowed(estimated: dict[str, TagIntrinsics | str], sizes: dict[str, tuple[int, int]]
+                   ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(K, dist) per camera: its own estimate, or, for a camera whose tags cannot give one, the
+    median focal length of the estimated cameras of its image size, centred, without distortion:
+    enough to place it from its few tags or the scene; the report names it."""
+    own = {c: (e.K, e.dist) for c, e in estimated.items() if isinstance(e, TagIntrinsics)}
+    out = dict(own)
+    for c, e in estimated.items():
+        same = [K[0, 0] / sizes[o][0] for o, (K, _) in own.items() if sizes[o] == sizes[c]]
+        if isinstance(e, str) and same:
+            w, h = sizes[c]
+            f = float(np.median(same)) * w
+            out[c] = (np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]]), np.zeros(5))
+    return out
+
+
+def _intrinsics_record(estimated: dict[str, TagIntrinsics | str], adjusted: dict[str, dict]) -> dict[str, dict]:
+    """report.json's per-camera account of intrinsics estimated from the tags."""
+    out = {}
+    for c, e in estimated.items():
+        if isinstance(e, str):
+            out[c] = {"model": None, "borrowed": e, "weak": [f"intrinsics not estimated: it {e}; the other "
+                                                             "cameras' median focal length was used"]}
+        else:
+            out[c] = {"model": e.model, "points": e.points, "reach": round(e.reach, 3), **adjusted.get(c, {})}
     return out
 
 

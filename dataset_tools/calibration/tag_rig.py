@@ -29,10 +29,12 @@ from .bundle import (
     pack_intrinsics,
     project_points,
     residuals_of,
+    unpack_intrinsics,
 )
 from .detect import Detection
 from .pnp import solve_pnp
 from .result import RigCalibration, camera_stats, require_all, rig_from_state
+from .tag_intrinsics import uncertainty
 
 MIN_TAG_POINTS = 8  # two tags: PnP with a margin against one mis-decoded tag
 
@@ -45,7 +47,8 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
                       refine_intrinsics: bool = False, refine_tags: bool = False, tag_sigma_m: float = 0.002,
                       allow_partial: bool = False, ransac_px: float = 4.0,
                       initial_poses: dict[str, np.ndarray] | None = None,
-                      scene: SceneCallback | None = None) -> RigCalibration:
+                      scene: SceneCallback | None = None,
+                      free_intrinsics: dict[str, np.ndarray] | None = None) -> RigCalibration:
     """Calibrate static cameras from tags on the walls (tags.json, world frame).
 
     detections: {camera: {frame: Detection}} with tag point ids (tag_id * 4 + corner);
@@ -56,6 +59,9 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
       such camera is resected from scene points the placed cameras triangulate, and adjusted on
       those points and whatever tag corners it sees (rig.py passes features.scene_anchors);
     initial_poses: {camera: (4,4) world-to-camera} (from COLMAP) for those the scene does not place.
+    free_intrinsics: {camera: (9,) bool} the intrinsics each camera's adjustment estimates (the
+      model its tags constrain, tag_intrinsics); extra["intrinsics"] then gives their standard
+      deviations and the camera's position's, and what its data leaves loose.
     """
     pid, world = layout.points()
     lookup = {int(p): i for i, p in enumerate(pid)}
@@ -104,9 +110,13 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
     state = BundleState(np.array([pack_intrinsics(*intrinsics[n]) for n in cams]),
                         matrix_to_rotvec(camT[:, :3, :3]), camT[:, :3, 3].copy(), obj_rvec, obj_t)
     imask = np.ones((len(cams), N_INTRINSICS), bool) if refine_intrinsics else None
+    if free_intrinsics:
+        imask = np.array([free_intrinsics.get(n, np.zeros(N_INTRINSICS, bool)) for n in cams])
     result = bundle_adjust(state, obs, np.zeros(len(cams), bool), np.full(len(obj_t), not refine_tags), imask,
                            obj_prior=prior)
     extra = {"pnp_rms_px": pnp_rms, "ba_rms_before_px": result.cost_initial_px}
+    if free_intrinsics:
+        extra["intrinsics"] = _uncertainties(result, cams, free_intrinsics, sizes)
     if refine_tags:
         moved = np.linalg.norm(result.state.obj_t - obj_t, axis=1)
         extra["tag_shift_m"] = {int(t): float(m) for t, m in zip(layout.ids, moved)}
@@ -136,6 +146,21 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
     rig = rig_from_state(cams, result.state, size_arr, stats)
     return RigCalibration(rig, "tags", stats, result.obs, result.residuals, outliers,
                           partial=bool(problems), missing=problems, extra=extra)
+
+
+def _uncertainties(result: BundleResult, cams: list[str], free: dict[str, np.ndarray],
+                   sizes: dict[str, tuple[int, int]]) -> dict[str, dict]:
+    """Per camera whose intrinsics were estimated: their standard deviations and its position's
+    from the adjustment, and what they leave loose (tag_intrinsics.Uncertainty.weak)."""
+    out = {}
+    for c, name in enumerate(cams):
+        if name not in free:
+            continue
+        sd = uncertainty(result.state, result.obs, c, free[name])
+        K = unpack_intrinsics(result.state.intr[c])[0]
+        out[name] = {"sd": {"fx": sd.fx, "fy": sd.fy, "cx": sd.cx, "cy": sd.cy, "k1": sd.k1,
+                            "centre_mm": sd.centre_m * 1000}, "weak": sd.weak(K, sizes[name][0])}
+    return out
 
 
 def _tag_objects(obs: Observations, pidx: np.ndarray, world: np.ndarray, layout: TagLayout, refine_tags: bool,

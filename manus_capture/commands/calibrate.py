@@ -84,8 +84,15 @@ def intrinsics(inputs, board_file: Path, output: Path, camera_id, frames: int, m
 @click.option("--force", is_flag=True, help="Replace an existing calibration in the output folder.")
 def rig(take: Path, tags_file, board_file, method, intrinsics_file, allow_partial, refine_tags, tag_frames,
         board_frames, workers, output: Path, force: bool) -> None:
-    """Calibrate every camera of TAKE (a take folder, or a folder of per-camera videos)."""
+    """Calibrate every camera of TAKE (a take folder, or a folder of per-camera videos).
+
+    With nothing else, a take of a session is calibrated from the session's tags.json (beside
+    session.toml): every camera's intrinsics and pose from the tags it sees. --intrinsics or a
+    --board give the intrinsics instead.
+    """
     images, take_dir = _take_or_videos(take)
+    if tags_file is None and board_file is None and method in ("auto", "tags", "colmap", "both"):
+        tags_file = _session_tags(take)
     with Bars(unit="cam") as bars:
         result = calibrate_rig(images, take=take_dir, tags=tags_file, board=board_file, method=method,
                                intrinsics=intrinsics_file, allow_partial=allow_partial, tag_frames=tag_frames,
@@ -99,6 +106,23 @@ def rig(take: Path, tags_file, board_file, method, intrinsics_file, allow_partia
         status += f"; {', '.join(scene)} short of tags, placed from scene features"
     click.echo(f"wrote {output}: {len(result.rig)} cameras ({result.method}), reprojection RMS {result.rms_px:.3f} px, "
                f"median {result.median_px:.3f} px over {len(result.obs)} observations; {status}")
+    estimated = result.extra.get("intrinsics", {})
+    if estimated:
+        click.echo(f"  intrinsics from the tags: {len(estimated)} cameras (report.md gives their standard "
+                   "deviations)")
+    for cam, entry in estimated.items():
+        if entry.get("weak"):
+            click.echo(f"  warning: camera {cam}: weakly constrained ({'; '.join(entry['weak'])}): aim it at more "
+                       "tags, or wave a board in front of it and pass --board", err=True)
+
+
+def _session_tags(take: Path) -> Path:
+    """The session's tags.json, beside session.toml (a take's parent folder, or the folder itself)."""
+    for folder in (take, take.parent):
+        if (folder / "tags.json").is_file():
+            return folder / "tags.json"
+    raise click.UsageError(f"no tags.json in {take.parent} or {take} (looked beside session.toml): "
+                           "pass --tags FILE, or --board FILE for a board seen by the cameras")
 
 
 def _take_or_videos(folder: Path):

@@ -45,9 +45,14 @@ def look_at(position, target, up) -> np.ndarray:
     return np.stack([x, y, z])
 
 
-def intrinsics(width: int, height: int, hfov_deg: float) -> np.ndarray:
+def intrinsics(width: int, height: int, hfov_deg: float, aspect: float = 1.0,
+               principal_offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """K of a camera: fx from the horizontal field of view, fy = aspect * fx, and the principal
+    point offset from the image centre ((w-1)/2, (h-1)/2) by fractions of the width and height."""
     f = (width / 2) / np.tan(np.radians(hfov_deg) / 2)
-    return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    cx = (width - 1) / 2 + principal_offset[0] * width
+    cy = (height - 1) / 2 + principal_offset[1] * height
+    return np.array([[f, 0, cx], [0, aspect * f, cy], [0, 0, 1]])
 
 
 def true_cameras(config: RigConfig) -> CameraRig:
@@ -57,8 +62,9 @@ def true_cameras(config: RigConfig) -> CameraRig:
         raise CameraError(f"{config.source}: no camera with backend 'sim'")
     Rs = [look_at(c.sim.position, c.sim.look_at, c.sim.up) for c in cams]
     ts = [-R @ np.asarray(c.sim.position) for R, c in zip(Rs, cams)]
-    return CameraRig(tuple(c.id for c in cams), [intrinsics(c.width, c.height, c.sim.hfov_deg) for c in cams],
-                     [c.sim.dist for c in cams], Rs, ts, [[c.width, c.height] for c in cams])
+    Ks = [intrinsics(c.width, c.height, c.sim.hfov_deg, c.sim.aspect, c.sim.principal_offset) for c in cams]
+    return CameraRig(tuple(c.id for c in cams), Ks, [c.sim.dist for c in cams], Rs, ts,
+                     [[c.width, c.height] for c in cams])
 
 
 class SimulatedCube:

@@ -23,7 +23,7 @@ from rig.sim.world import World
 @pytest.fixture(scope="module")
 def scene():
     truth = true_cameras(make_rig(cameras=16, resolution=(640, 360), seed=1))
-    world = World()
+    world = World(tags_per_wall=8, tag_size=0.09)   # the density docs/calibration.md advises
     renderer = Renderer(world, truth, supersample=2)
     images = {c: [(renderer.background(i)[0] * 255).round().astype(np.uint8)] for i, c in enumerate(truth.ids)}
     return truth, tags_from_dict(world.tags_json()), images

@@ -115,6 +115,8 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
             found, first_sizes = detect_cameras(first, TagDetector(layout.dictionary), workers, progress)
             estimated = _estimate(found, first_sizes, layout)
             intr = _with_borrowed(estimated, first_sizes)
+            # a camera with neither its own estimate nor one to borrow is named, never dropped silently
+            problems.update({c: f"no intrinsics: it {e}" for c, e in estimated.items() if c not in intr})
         if not intr:
             raise CalibrationError("no camera has intrinsics: pass --intrinsics FILE or a --board seen in the take"
                                    + (f" ({'; '.join(f'{c}: {m}' for c, m in problems.items())})" if problems else ""))

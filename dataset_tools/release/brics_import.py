@@ -134,8 +134,10 @@ def _remux(src: Path, keep: np.ndarray, dst: Path, size: tuple[int, int], fps: f
 def _target(session: Path, name: str, force: bool) -> Path:
     take = session / name
     if take.exists():
-        meta = take / "take.json"
-        imported = meta.is_file() and "imported" in json.loads(meta.read_text() or "{}")
+        try:
+            imported = "imported" in json.loads((take / "take.json").read_text())
+        except (OSError, ValueError, TypeError):   # no take.json, or not one: not ours to replace
+            imported = False
         if not force or not imported:
             raise ReleaseError(f"{take}: exists" + (" (use --force to import it again)" if imported else
                                                    " and is not an imported take; import into another session"))

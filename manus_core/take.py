@@ -156,6 +156,24 @@ class Take:
         # iter_frames raises TakeError when the video is shorter, so there is always one frame.
         return next(image for _, image in self.iter_frames(cam, k, k + 1))
 
+    def read_frames(self, cam: str, indices) -> dict[int, np.ndarray]:
+        """{k: image (H,W,3) BGR uint8} for the frame indices asked for (-1 ignored), in one pass
+        over the video: only those are decoded."""
+        wanted = {int(k) for k in indices if k >= 0}
+        out: dict[int, np.ndarray] = {}
+        if not wanted:
+            return out
+        path, last = self.video_path(cam), max(wanted)
+        for k, packet in enumerate(self.packets(cam)):
+            if k in wanted:
+                out[k] = _decode(packet, path, k)
+            if k >= last:
+                break
+        missing = wanted - set(out)
+        if missing:
+            raise TakeError(f"{path}: has no frame {min(missing)}")
+        return out
+
     def _check_camera(self, cam: str) -> None:
         if cam not in self.cameras:
             raise TakeError(f"{self.path / 'take.json'}: no camera {cam!r} "

@@ -74,12 +74,12 @@ def _undistorted_pixels(rig: CameraRig, pixels: np.ndarray) -> np.ndarray:
                      K[:, 1, 1, None] * xy[..., 1] + K[:, 1, 2, None]], -1)
 
 
-def _write_video(take: Take, cam: str, frames: np.ndarray, path: Path, fps: float) -> None:
+def _write_video(take: Take, cam: str, frames: np.ndarray, path: Path, fps: float, size: np.ndarray) -> None:
     """Frames `frames` (increasing) of a camera as an MJPEG AVI, packets unchanged (ffmpeg remuxes)."""
     if shutil.which("ffmpeg") is None:
         raise ReleaseError("ffmpeg not found: the export writes AVI with `ffmpeg -c copy` (apt-get install ffmpeg)")
     wanted = set(int(k) for k in frames)
-    w, h = (int(v) for v in take.read_frame(cam, int(frames[0])).shape[1::-1])
+    w, h = (int(v) for v in size)
     mkv = path.with_suffix(".mkv")
     with MkvWriter(mkv, w, h, fps, fsync=False) as out:
         for k, packet in enumerate(take.packets(cam)):
@@ -156,12 +156,13 @@ def dataset_masks(dataset: Path, key: str, frame_ns: np.ndarray, cams: list[str]
     return out
 
 
-def _mask_images(take: Take, masks: dict, frames: np.ndarray, cams: list[str], capture: Path) -> None:
+def _mask_images(take: Take, masks: dict, frames: np.ndarray, cams: list[str], images: list[dict],
+                 capture: Path) -> None:
     object_take = take.meta.get("kind") == "object"
     parts = [("object", MASKS)] if object_take else [("hand", MASKS), ("object", OBJECT_MASKS)]
     for n in np.flatnonzero(masks["present"]):
         for c, cam in enumerate(cams):
-            image = take.read_frame(cam, int(frames[n, c]))
+            image = images[c][int(frames[n, c])]
             for part, folder in parts:
                 if part == "object" and not object_take and not masks["object"][n, c].any():
                     continue
@@ -171,9 +172,11 @@ def _mask_images(take: Take, masks: dict, frames: np.ndarray, cams: list[str], c
                 cv2.imwrite(str(path), bgra)
 
 
-def _hand_hdf5(take: Take, rig: CameraRig, masks: dict, frames: np.ndarray, cams: list[str], path: Path) -> int:
+def _hand_hdf5(rig: CameraRig, masks: dict, frames: np.ndarray, cams: list[str], images: list[dict],
+               path: Path) -> int:
     """actions_hdf5/TAKE.hdf5: per camera K and extr (3x4), per masked frame the hand's undistorted
-    RGBA crop and its box [xmin, ymin, xmax, ymax] (exclusive max). Returns the frames written."""
+    RGBA crop and its box [xmin, ymin, xmax, ymax] (exclusive max). Returns the frames written.
+    images: per camera {frame index: image} of the masked frames."""
     path.parent.mkdir(parents=True, exist_ok=True)
     written = 0
     with h5py.File(path, "w") as f:
@@ -184,7 +187,7 @@ def _hand_hdf5(take: Take, rig: CameraRig, masks: dict, frames: np.ndarray, cams
                                             tuple(int(v) for v in rig.size[c]), cv2.CV_32FC1) for c in range(len(cams))]
         for n in np.flatnonzero(masks["present"]):
             for c, cam in enumerate(cams):
-                image = cv2.remap(take.read_frame(cam, int(frames[n, c])), *maps[c], cv2.INTER_LINEAR)
+                image = cv2.remap(images[c][int(frames[n, c])], *maps[c], cv2.INTER_LINEAR)
                 mask = cv2.remap(masks["hand"][n, c].astype(np.uint8) * 255, *maps[c], cv2.INTER_NEAREST)
                 ys, xs = np.nonzero(mask)
                 if not len(xs):
@@ -223,23 +226,25 @@ def export_take(take_path: Path, rig: CameraRig, out: Path, dataset: Path | None
     created = str(take.meta.get("created", ""))[:10] or datetime.date.today().isoformat()
     capture = out / KIND_FOLDERS.get(str(take.meta.get("kind")), "actions") / f"{created}_session_{take.path.name}"
     fps = take.fps or 30.0
+    sub = rig.subset(cams)
     for c, cam in enumerate(cams):
         folder = capture / SYNCED / cam
         folder.mkdir(parents=True, exist_ok=True)
-        _write_video(take, cam, frames[:, c], folder / f"{cam}.avi", fps)
+        _write_video(take, cam, frames[:, c], folder / f"{cam}.avi", fps, sub.size[c])
         t_us = take.camera_frames(cam)["t_host_ns"][frames[:, c]] // 1000
         write_timestamps(folder / f"{cam}_synced_files.txt", t_us)
         progress(f"export {take.path.name}", c + 1, len(cams))
     parts = ["synced"]
-    sub = rig.subset(cams)
     if ann is not None:
         parts += _poses(ann, complete, cams, sub, capture / POSE_DUMPS)
     masks = dataset_masks(dataset, key, frame_ns[complete], cams) if dataset is not None and dataset.exists() else None
     if masks is not None and masks["present"].any():
-        _mask_images(take, masks, frames, cams, capture)
+        # each camera's masked frames, decoded in one pass over its video for both outputs
+        images = [take.read_frames(cam, frames[masks["present"], c]) for c, cam in enumerate(cams)]
+        _mask_images(take, masks, frames, cams, images, capture)
         parts.append("masks")
         if take.meta.get("kind") in ("hand", "grasp") and _hand_hdf5(
-                take, sub, masks, frames, cams, out / "actions_hdf5" / f"{take.path.name}.hdf5"):
+                sub, masks, frames, cams, images, out / "actions_hdf5" / f"{take.path.name}.hdf5"):
             parts.append("actions_hdf5")
     return TakeExport(take.path, capture, len(complete), int(len(index) - len(complete)), tuple(parts))
 

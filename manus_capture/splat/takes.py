@@ -99,27 +99,6 @@ def frames_with_seq(take: Take, cameras: Sequence[str], seqs: Sequence[int]) -> 
     return out
 
 
-def read_frames(take: Take, cam: str, indices: Sequence[int]) -> dict[int, np.ndarray]:
-    """{k: image (H,W,3) BGR uint8} for the frame indices asked for; only those are decoded."""
-    wanted = {int(k) for k in indices if k >= 0}
-    out: dict[int, np.ndarray] = {}
-    if not wanted:
-        return out
-    last = max(wanted)
-    for k, packet in enumerate(take.packets(cam)):
-        if k in wanted:
-            image = cv2.imdecode(packet, cv2.IMREAD_COLOR)
-            if image is None:
-                raise TakeInputError(f"{take.video_path(cam)}: frame {k} is not a decodable JPEG")
-            out[k] = image
-        if k >= last:
-            break
-    missing = wanted - set(out)
-    if missing:
-        raise TakeInputError(f"{take.video_path(cam)}: has no frame {min(missing)}")
-    return out
-
-
 def _seq_of(take: Take, cameras: Sequence[str], index: np.ndarray) -> np.ndarray:
     """Sequence numbers (T,C) of frame indices (T,C) (-1 stays -1)."""
     out = np.full(index.shape, -1, np.int64)
@@ -234,7 +213,7 @@ def object_views_from_take(take_path: str | os.PathLike, rig: CameraRig, frame: 
         index = index[complete[:1]]
     else:
         index = np.full((1, len(rig)), 0 if frame is None else int(frame), np.int64)
-    images = [read_frames(take, cam, index[0, c:c + 1])[int(index[0, c])] for c, cam in enumerate(rig.ids)]
+    images = [take.read_frames(cam, index[0, c:c + 1])[int(index[0, c])] for c, cam in enumerate(rig.ids)]
     if isinstance(masks, str):
         masks = np.isin(truth_labels(take_path, rig.ids, _seq_of(take, rig.ids, index))[0], OBJECT_LABELS)
     elif masks is not None:
@@ -413,7 +392,7 @@ def hand_views_from_take(take_path: str | os.PathLike, rig: CameraRig, hand: Han
     masks = np.asarray(masks, bool)
     if masks.shape[:2] != index.shape:
         raise ValueError(f"masks has shape {masks.shape[:2]} for {index.shape[0]} frames x {len(rig)} cameras")
-    per_cam = [read_frames(take, cam, index[:, c]) for c, cam in enumerate(rig.ids)]
+    per_cam = [take.read_frames(cam, index[:, c]) for c, cam in enumerate(rig.ids)]
     joints = HandSkeleton(hand.bone_lengths).forward(angles)  # (P,21,3)
     uv = rig.project(joints.reshape(-1, 3)).reshape(len(rig), len(frames), 21, 2)
     views = []

@@ -101,10 +101,10 @@ def test_cameras_without_tags_are_placed_from_the_scene(cube):
 
 @pytest.fixture(scope="module")
 def dense_cube():
-    """The cube at 640x360 with the walls a lab would tag for calibrating intrinsics too (8 x 8
-    tags of 9 cm a wall, docs/calibration.md), rendered through the sim's true cameras, whose
-    intrinsics differ camera by camera from any nominal value."""
-    world = World(tags_per_wall=8, tag_size=0.09)
+    """The cube at 640x360 tagged as a lab would for calibrating intrinsics too (8 x 8 tags of 9 cm
+    a wall and the table's sides, docs/calibration.md), rendered through the sim's true cameras,
+    whose intrinsics differ camera by camera from any nominal value."""
+    world = World(tags_per_wall=8, tag_size=0.09, table_tags=True)
     truth = true_cameras(make_rig(resolution=(640, 360), seed=1))
     renderer = Renderer(world, truth, supersample=1)
     images = {c: [(renderer.background(truth.index(c))[0] * 255).round().astype(np.uint8)] for c in truth.ids}
@@ -113,8 +113,9 @@ def dense_cube():
 
 def test_53_cameras_intrinsics_and_poses_from_the_tags_alone(dense_cube):
     """No intrinsics file, no board: every camera's K, distortion and pose from the tags it sees.
-    Every camera the report does not name as weakly constrained meets the issue's bounds; the
-    two that look into the table's side see corners on little more than one wall and are named."""
+    Every camera meets the issue's bounds, the floor cameras beside the table too (measured max:
+    fx 0.037 %, fy 0.039 %, principal point 0.67 px, centre 0.89 mm, rotation 0.078 deg,
+    reprojection in the volume 0.17 px median; z+01 named weak)."""
     truth, images, layout = dense_cube
     spread = truth.K[:, 0, 0] / truth.size[:, 0]
     assert spread.max() / spread.min() > 1.03 and np.abs(truth.dist[:, 0]).max() > 0.2   # not a nominal rig
@@ -126,7 +127,7 @@ def test_53_cameras_intrinsics_and_poses_from_the_tags_alone(dense_cube):
     weak = sorted(c for c, e in info.items() if e["weak"])
     # a camera whose tags lie on one wall gets the others' median focal length, and is named
     assert set(info) == set(est.ids) and all(info[c]["model"] or c in weak for c in est.ids)
-    assert len(weak) <= 3, weak
+    assert len(weak) <= 2, weak
     fx = np.abs(est.K[:, 0, 0] / ref.K[:, 0, 0] - 1)
     fy = np.abs(est.K[:, 1, 1] / ref.K[:, 1, 1] - 1)
     pp = np.abs(est.K[:, :2, 2] - ref.K[:, :2, 2]).max(axis=1)
@@ -139,7 +140,7 @@ def test_53_cameras_intrinsics_and_poses_from_the_tags_alone(dense_cube):
     reproj = np.nanmedian(reproj, axis=1)
     bad = {c: dict(fx_pct=round(100 * fx[i], 3), fy_pct=round(100 * fy[i], 3), pp_px=round(pp[i], 2),
                    centre_mm=round(centre_mm[i], 2), rot_deg=round(rot[i], 3), reproj_px=round(reproj[i], 3))
-           for i, c in enumerate(est.ids) if c not in weak and not (
+           for i, c in enumerate(est.ids) if not (
                fx[i] < 0.003 and fy[i] < 0.003 and pp[i] < 1.0 and centre_mm[i] < 2.0 and rot[i] < 0.1
                and reproj[i] < 0.3)}
     assert not bad, bad

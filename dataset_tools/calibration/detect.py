@@ -107,8 +107,10 @@ class TagDetector:
     def detect_tags(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[dict]]:
         """(tag ids (T,), corners (T,4,2) in OpenCV order, per-tag quality dicts).
 
-        Quality: side_px (shortest side), decoded_at (1, or the upsampling of the pass that
-        decoded it), fitted (per corner: re-fitted from the edges; always true with "apriltag").
+        Quality: side_px (shortest side), face_on (the quad's area over half its longer diagonal
+        squared: 1 for a tag seen head-on, about the cosine of the viewing angle at a slant),
+        decoded_at (1, or the upsampling of the pass that decoded it), fitted (per corner:
+        re-fitted from the edges; always true with "apriltag").
         """
         gray = to_gray(image)
         if self.inverted:
@@ -143,9 +145,12 @@ class TagDetector:
             # back unchanged, i.e. in the AprilTag convention: flagged, and left out of `detect`
             refined = np.any(fitted != quads_arr, axis=2)
             quads_arr = fitted
-        sides = np.linalg.norm(quads_arr - np.roll(quads_arr, 1, axis=1), axis=2).min(axis=1) if len(quads) else []
-        info = [{"side_px": round(float(s), 2), "decoded_at": k, "fitted": r.tolist()}
-                for s, k, r in zip(sides, scales, refined)]
+        sides = np.linalg.norm(quads_arr - np.roll(quads_arr, 1, axis=1), axis=2).min(axis=1)
+        diag = quads_arr[:, 2:] - quads_arr[:, :2]          # (T,2,2): corner 0 to 2 and 1 to 3
+        area = 0.5 * np.abs(diag[:, 0, 0] * diag[:, 1, 1] - diag[:, 0, 1] * diag[:, 1, 0])
+        face_on = area / np.maximum(0.5 * (diag ** 2).sum(axis=2).max(axis=1), 1e-9)
+        info = [{"side_px": round(float(s), 2), "face_on": round(float(f), 3), "decoded_at": k, "fitted": r.tolist()}
+                for s, f, k, r in zip(sides, face_on, scales, refined)]
         return np.asarray(tag_ids, np.int64), quads_arr, info
 
     def detect(self, image: np.ndarray) -> Detection:

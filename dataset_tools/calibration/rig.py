@@ -39,7 +39,7 @@ from .frames import FrameSource, read_frames, subsample, unreadable
 from .intrinsics import calibrate_intrinsics
 from .report import build_report, cross_check, scale_check, write_report
 from .result import RigCalibration, require_all
-from .tag_intrinsics import TagIntrinsics, corner_table, estimate_intrinsics, without_small_tags
+from .tag_intrinsics import TagIntrinsics, corner_table, estimate_intrinsics, without_poor_tags
 from .tag_rig import SceneCallback, calibrate_tag_rig, evaluate_tag_rig
 
 METHODS = ("auto", "tags", "board", "colmap", "both")
@@ -131,7 +131,7 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
                          for c, e in estimated.items() if c in tag_dets}
             intr = _with_borrowed(estimated, tag_sizes)
             # the adjustment estimates intrinsics from the same corners the estimate trusted
-            tag_dets = {c: without_small_tags(d) if isinstance(estimated.get(c), TagIntrinsics) else d
+            tag_dets = {c: without_poor_tags(d) if isinstance(estimated.get(c), TagIntrinsics) else d
                         for c, d in tag_dets.items()}
         initial, colmap_rig = {}, None
         if method in ("colmap", "both"):

@@ -26,6 +26,9 @@ from .detect import Detection
 MIN_POINTS = 24          # six tags: 11 unknowns of the DLT, with a margin against mis-decodes
 NON_PLANAR = 0.05        # the corners' third spread over their first: two walls or more
 MIN_SIDE_PX = 12.0       # tags seen smaller than this do not take part (see corner_table)
+# nor tags seen at a slant beyond ~66 deg (detect's face_on): on the simulated cube their corners
+# were off by 0.3-0.9 px (median), against 0.01-0.04 px for the tags seen more squarely
+MIN_FACE_ON = 0.4
 OUTLIER_PX = 2.0         # a corner this far off its camera's first fit (and 5x the median) is dropped
 # what a well calibrated camera's adjustment leaves (1 sigma); above it a camera is named
 WEAK_FX = 0.001          # relative
@@ -54,12 +57,14 @@ class TagIntrinsics:
         return mask
 
 
-def without_small_tags(dets: dict[int, Detection]) -> dict[int, Detection]:
-    """A camera's detections without the corners of tags seen smaller than MIN_SIDE_PX."""
+def without_poor_tags(dets: dict[int, Detection]) -> dict[int, Detection]:
+    """A camera's detections without the corners of tags seen smaller than MIN_SIDE_PX or at a
+    slant (face_on below MIN_FACE_ON)."""
     out = {}
     for frame, d in dets.items():
-        small = [int(t) for t, q in d.info.get("tags", {}).items() if q.get("side_px", np.inf) < MIN_SIDE_PX]
-        keep = ~np.isin(d.ids // 4, small)
+        poor = [int(t) for t, q in d.info.get("tags", {}).items()
+                if q.get("side_px", np.inf) < MIN_SIDE_PX or q.get("face_on", 1.0) < MIN_FACE_ON]
+        keep = ~np.isin(d.ids // 4, poor)
         out[frame] = Detection(d.ids[keep], d.xy[keep], d.info)
     return out
 
@@ -68,9 +73,9 @@ def corner_table(dets: dict[int, Detection], lookup: dict[int, int], world: np.n
                  ) -> tuple[np.ndarray, np.ndarray]:
     """(world points (N,3), pixels (N,2)) of the layout's corners a static camera saw, each corner
     once: the median over the frames it was found in. Corners of tags seen smaller than
-    MIN_SIDE_PX are left out: far or grazing, their corners are the least precise, and on the
+    MIN_SIDE_PX or at a slant are left out: their corners are the least precise, and on the
     cube's floor and ceiling cameras they pulled the estimate into a wrong minimum."""
-    dets = without_small_tags(dets)
+    dets = without_poor_tags(dets)
     ids = np.concatenate([d.ids for d in dets.values()]) if dets else np.zeros(0, int)
     xy = np.concatenate([d.xy for d in dets.values()]) if dets else np.zeros((0, 2))
     known = np.isin(ids, np.fromiter(lookup, int, len(lookup)))

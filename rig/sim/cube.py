@@ -76,7 +76,8 @@ class SimulatedCube:
         self.config = config
         self.kind = kind
         self.duration_s = float(duration_s)
-        self.world = World(edge=sim.cube_edge, tag_size=sim.tag_size, tags_per_wall=sim.tags_per_wall, seed=sim.seed)
+        self.world = World(edge=sim.cube_edge, tag_size=sim.tag_size, tags_per_wall=sim.tags_per_wall,
+                           table_tags=sim.table_tags, seed=sim.seed)
         self.cameras = true_cameras(config)
         self.camera_configs = tuple(c for c in config.cameras if c.backend == "sim")
         self.renderer = Renderer(self.world, self.cameras, sim.supersample)

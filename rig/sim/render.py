@@ -22,7 +22,7 @@ from manus_core.cameras import CameraRig
 from manus_core.ground_truth import LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL_WALLS
 
 from . import shapes
-from .world import MIP_LEVELS, World
+from .world import MIP_LEVELS, Atlas, World
 
 PAINT_BGR = np.array([0.2, 0.78, 0.12], np.float32)  # the green residue left on the hand
 AMBIENT = 0.25  # room light when the LEDs are off, as a fraction of full LED light
@@ -109,6 +109,26 @@ def shade(albedo: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarr
     return albedo * (0.55 + 0.45 * facing)[:, None].astype(np.float32)
 
 
+def sample_atlas(atlas: Atlas, face: np.ndarray, u: np.ndarray, v: np.ndarray, texels_per_px: np.ndarray,
+                 cos: np.ndarray) -> np.ndarray:
+    """Trilinear (mip-mapped) colour (N,3) in [0, 1] of faces at (u, v) texels, seen with
+    `texels_per_px` texels under a pixel's width head-on and at `cos` to the face's normal."""
+    # grazing views stretch the footprint along one axis
+    footprint = texels_per_px / np.sqrt(np.maximum(cos, 1e-3))
+    lod = np.clip(np.log2(np.maximum(footprint, 1.0)), 0, MIP_LEVELS - 1)
+    x0 = u + atlas.pad[1]
+    y0 = face * atlas.stride + atlas.pad[0] + v
+    colour = np.zeros((len(u), 3), np.float32)
+    for level in range(int(np.floor(lod.min())), int(np.ceil(lod.max())) + 1):
+        weight = np.maximum(0.0, 1.0 - np.abs(lod - level)).astype(np.float32)
+        if not weight.any():
+            continue
+        scale = 2.0 ** level
+        sample = remap_points(atlas.levels[level], x0 / scale - 0.5, y0 / scale - 0.5)
+        colour += weight[:, None] * sample.astype(np.float32) / 255.0
+    return colour
+
+
 _CUBE_CORNERS = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T   # (8,3)
 
 
@@ -148,20 +168,7 @@ class Renderer:
         u = np.clip(np.einsum("ij,ij->i", rel, self._us[face]), 0, w.edge)
         v = np.clip(np.einsum("ij,ij->i", rel, self._vs[face]), 0, w.edge)
         cos = np.abs(np.einsum("ij,ij->i", dirs, self._normals[face]))
-        # texels under one pixel; grazing views stretch the footprint along one axis
-        footprint = s / focal / np.sqrt(np.maximum(cos, 1e-3)) / w.texel
-        lod = np.clip(np.log2(np.maximum(footprint, 1.0)), 0, MIP_LEVELS - 1)
-        x0 = u / w.texel + w.pad
-        y0 = face * (w.tile + 2 * w.pad) + w.pad + v / w.texel
-        colour = np.zeros((len(dirs), 3), np.float32)
-        for level in range(int(np.floor(lod.min())), int(np.ceil(lod.max())) + 1):
-            weight = np.maximum(0.0, 1.0 - np.abs(lod - level)).astype(np.float32)
-            if not weight.any():
-                continue
-            scale = 2.0 ** level
-            sample = remap_points(w.atlas[level], x0 / scale - 0.5, y0 / scale - 0.5)
-            colour += weight[:, None] * sample.astype(np.float32) / 255.0
-        return colour, s
+        return sample_atlas(w.atlas, face, u / w.texel, v / w.texel, s / focal / w.texel, cos), s
 
     def _static(self, origin: np.ndarray, dirs: np.ndarray, focal: float) -> tuple[np.ndarray, np.ndarray]:
         """Walls and table: colour (N,3) and distance (N,)."""
@@ -171,9 +178,30 @@ class Renderer:
         on_table = t_table < depth
         if on_table.any():
             points = origin + t_table[on_table, None] * dirs[on_table]
-            colour[on_table] = shade(self.world.table_albedo(points), n_table[on_table], dirs[on_table])
+            normals = n_table[on_table]
+            albedo = self.world.table_albedo(points)
+            if self.world.table_tags:
+                self._tagged_sides(albedo, points, normals, t_table[on_table], dirs[on_table], focal)
+            colour[on_table] = shade(albedo, normals, dirs[on_table])
             depth = np.where(on_table, t_table, depth)
         return colour, depth
+
+    def _tagged_sides(self, albedo: np.ndarray, points: np.ndarray, normals: np.ndarray, dist: np.ndarray,
+                      dirs: np.ndarray, focal: float) -> None:
+        """Replaces, in place, the albedo of table points on its sides by the sides' tagged texture."""
+        w = self.world
+        faces = w.table_faces
+        side_normals = np.array([f.normal for f in faces])
+        match = normals @ side_normals.T > 0.5
+        side = match.any(axis=1)
+        if not side.any():
+            return
+        face = np.argmax(match[side], axis=1)
+        rel = points[side] - np.array([f.origin for f in faces])[face]
+        u = np.einsum("ij,ij->i", rel, np.array([f.u for f in faces])[face])
+        v = np.einsum("ij,ij->i", rel, np.array([f.v for f in faces])[face])
+        cos = np.abs(np.einsum("ij,ij->i", dirs[side], side_normals[face]))
+        albedo[side] = sample_atlas(w.table_atlas, face, u / w.texel, v / w.texel, dist[side] / focal / w.texel, cos)
 
     def background(self, cam: int) -> tuple[np.ndarray, np.ndarray]:
         """(H,W,3) colour and (H,W) distance of the empty cube with full LED light, cached."""

@@ -200,6 +200,11 @@ class TagLayout:
         pid = (self.ids[:, None] * 4 + np.arange(4)).ravel()
         return pid, self.corners.reshape(-1, 3)
 
+    def without(self, tags) -> "TagLayout":
+        """The layout without these tag ids."""
+        keep = ~np.isin(self.ids, list(tags))
+        return replace(self, ids=self.ids[keep], corners=self.corners[keep])
+
     def edge_pairs(self) -> np.ndarray:
         """(4T,2) point ids of neighbouring corners of each tag, `size` apart (scale checks)."""
         edges = np.stack([np.arange(4), (np.arange(4) + 1) % 4], axis=1)

@@ -142,6 +142,12 @@ def report_markdown(report: dict) -> str:
                      f"({cross['centre_mm_max']:.2f} max), rotations by {cross['rotation_deg_median']:.3f} deg "
                      f"median ({cross['rotation_deg_max']:.3f} max)"
                      + (f"; more than 10 mm or 0.5 deg apart: {', '.join(cross['disagree'])}" if cross["disagree"] else ""))
+    layout = report["checks"].get("layout")
+    if layout:
+        lines.append(f"- tags.json against the images: {layout['tags_checked']} tags triangulated, corners "
+                     f"{layout['median_mm']} mm median (max {layout['max_mm']}) from their listed place")
+        lines += [f"- **warning**, tag {t} disagrees with tags.json and was left out: {why}"
+                  for t, why in layout["disagreeing"].items()]
     lines += ["", "| camera | RMS px | median px | observations | frames | coverage | fx | fy |",
               "|---|---|---|---|---|---|---|---|"]
     for cam, c in report["cameras"].items():

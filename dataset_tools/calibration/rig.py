@@ -37,9 +37,10 @@ from .features import scene_anchors
 from .formats import load_cameras, save_cameras
 from .frames import FrameSource, read_frames, subsample, unreadable
 from .intrinsics import calibrate_intrinsics
+from .layout_check import check_layout
 from .report import build_report, cross_check, scale_check, write_report
 from .result import RigCalibration, require_all
-from .tag_intrinsics import TagIntrinsics, corner_table, estimate_intrinsics, without_poor_tags
+from .tag_intrinsics import TagIntrinsics, corner_table, estimate_intrinsics, without_poor_tags, without_tags
 from .tag_rig import SceneCallback, calibrate_tag_rig, evaluate_tag_rig
 
 METHODS = ("auto", "tags", "board", "colmap", "both")
@@ -153,11 +154,22 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
             result = _with_missing(result, problems)
         else:
             progress("tag PnP and bundle adjustment", 0, 1)
-            result = calibrate_tag_rig(tag_dets, tag_sizes, layout, intr, refine_tags=refine_tags,
-                                       allow_partial=allow_partial, initial_poses=initial or None,
-                                       scene=_scene(tag_src, tag_dets, progress),
-                                       free_intrinsics={c: e.free() for c, e in estimated.items()
-                                                        if isinstance(e, TagIntrinsics)})
+
+            def solve(dets: dict[str, dict[int, Detection]], tags: TagLayout) -> RigCalibration:
+                return calibrate_tag_rig(dets, tag_sizes, tags, intr, refine_tags=refine_tags,
+                                         allow_partial=allow_partial, initial_poses=initial or None,
+                                         scene=_scene(tag_src, dets, progress),
+                                         free_intrinsics={c: e.free() for c, e in estimated.items()
+                                                          if isinstance(e, TagIntrinsics)})
+            result = solve(tag_dets, layout)
+            checks["layout"] = check_layout(result.rig, tag_dets, layout)
+            if checks["layout"]["disagreeing"]:
+                # the tags tags.json misplaces are named in the report and left out of a second solve
+                wrong = [int(t) for t in checks["layout"]["disagreeing"]]
+                progress(f"bundle adjustment again without tags {', '.join(map(str, wrong))}", 0, 1)
+                tag_dets = {c: {f: without_tags(d, wrong) for f, d in dets.items()} for c, dets in tag_dets.items()}
+                layout = layout.without(wrong)
+                result = solve(tag_dets, layout)
             result = _with_missing(result, problems)
             if colmap_rig is not None:
                 checks["cross_check"] = cross_check(evaluate_tag_rig(colmap_rig, tag_dets, layout, "colmap"), result)

@@ -60,13 +60,15 @@ class TagIntrinsics:
 def without_poor_tags(dets: dict[int, Detection]) -> dict[int, Detection]:
     """A camera's detections without the corners of tags seen smaller than MIN_SIDE_PX or at a
     slant (face_on below MIN_FACE_ON)."""
-    out = {}
-    for frame, d in dets.items():
-        poor = [int(t) for t, q in d.info.get("tags", {}).items()
-                if q.get("side_px", np.inf) < MIN_SIDE_PX or q.get("face_on", 1.0) < MIN_FACE_ON]
-        keep = ~np.isin(d.ids // 4, poor)
-        out[frame] = Detection(d.ids[keep], d.xy[keep], d.info)
-    return out
+    return {frame: without_tags(d, [int(t) for t, q in d.info.get("tags", {}).items()
+                                    if q.get("side_px", np.inf) < MIN_SIDE_PX or q.get("face_on", 1.0) < MIN_FACE_ON])
+            for frame, d in dets.items()}
+
+
+def without_tags(d: Detection, tags) -> Detection:
+    """A detection without the corners of these tag ids."""
+    keep = ~np.isin(d.ids // 4, list(tags))
+    return Detection(d.ids[keep], d.xy[keep], d.info)
 
 
 def corner_table(dets: dict[int, Detection], lookup: dict[int, int], world: np.ndarray
@@ -75,14 +77,18 @@ def corner_table(dets: dict[int, Detection], lookup: dict[int, int], world: np.n
     once: the median over the frames it was found in. Corners of tags seen smaller than
     MIN_SIDE_PX or at a slant are left out: their corners are the least precise, and on the
     cube's floor and ceiling cameras they pulled the estimate into a wrong minimum."""
-    dets = without_poor_tags(dets)
-    ids = np.concatenate([d.ids for d in dets.values()]) if dets else np.zeros(0, int)
-    xy = np.concatenate([d.xy for d in dets.values()]) if dets else np.zeros((0, 2))
+    ids, xy = corner_pixels(without_poor_tags(dets))
     known = np.isin(ids, np.fromiter(lookup, int, len(lookup)))
-    ids, xy = ids[known], xy[known]
+    return world[[lookup[int(i)] for i in ids[known]]].reshape(-1, 3), xy[known]
+
+
+def corner_pixels(dets: dict[int, Detection]) -> tuple[np.ndarray, np.ndarray]:
+    """(corner ids, (N,2) pixels) of a static camera: each corner's median over its frames."""
+    ids = np.concatenate([d.ids for d in dets.values()]) if dets else np.zeros(0, np.int64)
+    xy = np.concatenate([d.xy for d in dets.values()]) if dets else np.zeros((0, 2))
     uniq, x = _median_by(ids, xy[:, 0])
     _, y = _median_by(ids, xy[:, 1])
-    return world[[lookup[int(i)] for i in uniq]].reshape(-1, 3), np.stack([x, y], axis=1)
+    return uniq, np.stack([x, y], axis=1)
 
 
 def _median_by(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -106,6 +106,8 @@ def rig(take: Path, tags_file, board_file, method, intrinsics_file, allow_partia
         status += f"; {', '.join(scene)} short of tags, placed from scene features"
     click.echo(f"wrote {output}: {len(result.rig)} cameras ({result.method}), reprojection RMS {result.rms_px:.3f} px, "
                f"median {result.median_px:.3f} px over {len(result.obs)} observations; {status}")
+    for tag, why in result.extra["checks"].get("layout", {}).get("disagreeing", {}).items():
+        click.echo(f"  warning: tag {tag} disagrees with {tags_file}: {why}; left out", err=True)
     estimated = result.extra.get("intrinsics", {})
     if estimated:
         click.echo(f"  intrinsics from the tags: {len(estimated)} cameras (report.md gives their standard "

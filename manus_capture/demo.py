@@ -39,11 +39,11 @@ from manus_capture.splat.checkpoint import save_checkpoint
 from manus_capture.splat.takes import truth_cameras
 from manus_capture.splat.trainer import SURFACE_EPS2D
 from manus_capture.template import capsule_template
-from manus_core.cameras import CameraRig
 from manus_core.dataset import read_dataset
 from manus_core.errors import DemoError
 from manus_core.fileio import write_atomic
 from manus_core.ground_truth import GroundTruth
+from manus_core.rotations import rotation_angle_deg
 from manus_core.take import Take
 from rig.layouts import make_rig
 from rig.record import RecordOptions, record_take
@@ -151,16 +151,16 @@ class Demo:
             truth.save(self.calib / "cameras.json")
             return {"source": "simulator (--true-calibration)"}
 
-        # the simulated cameras come with their lens calibration (as a lab's cameras would from an
-        # intrinsics session with a board); their poses come from the tags
-        intrinsics = CameraRig(truth.ids, truth.K, truth.dist, np.tile(np.eye(3), (len(truth), 1, 1)),
-                               np.zeros((len(truth), 3)), truth.size)
+        # nothing but the take and the session's tags.json, as `manus-capture calibrate rig TAKE`:
+        # every camera's intrinsics and pose from the tags it sees
         result = calibrate_rig(take=self.take["calibration"], tags=self.session / "tags.json", method="tags",
-                               intrinsics=intrinsics, output=self.calib, force=True)
-        rig = load_cameras(self.calib / "cameras.json")
-        err = camera_errors(rig, truth)
-        return {"centre_err_mm_median": float(np.median(err["centre_mm"])), "centre_err_mm_max": float(err["centre_mm"].max()),
-                "rotation_err_deg_max": float(err["rotation_deg"].max()), "reprojection_rms_px": result.rms_px}
+                               output=self.calib, force=True)
+        err = camera_errors(load_cameras(self.calib / "cameras.json"), truth)
+        return {"fx_err_pct_median": float(np.median(err["fx_pct"])), "fx_err_pct_max": float(err["fx_pct"].max()),
+                "pp_err_px_max": float(err["pp_px"].max()),
+                "centre_err_mm_median": float(np.median(err["centre_mm"])), "centre_err_mm_max": float(err["centre_mm"].max()),
+                "rotation_err_deg_max": float(err["rotation_deg"].max()), "reprojection_rms_px": result.rms_px,
+                "weak_cameras": sum(bool(e.get("weak")) for e in result.extra.get("intrinsics", {}).values())}
 
     def annotate(self) -> dict:
         takes = [self.take[k] for k in ("hand", "grasp", "canonical")]
@@ -285,12 +285,13 @@ class Demo:
 
 
 def camera_errors(rig, truth) -> dict:
-    """Per camera of `rig`: centre error (mm) and rotation error (degrees) against `truth`."""
-    idx = [truth.index(c) for c in rig.ids]
-    centre = 1000 * np.linalg.norm(rig.centers - truth.centers[idx], axis=1)
-    rel = np.einsum("cij,ckj->cik", rig.R, truth.R[idx])
-    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
-    return {"centre_mm": centre, "rotation_deg": np.degrees(np.arccos(cos))}
+    """Per camera of `rig` against `truth`: focal length error (%, the worse of fx and fy),
+    principal point error (px), centre error (mm) and rotation error (degrees)."""
+    ref = truth.subset(rig.ids)
+    focal = np.abs(rig.K[:, [0, 1], [0, 1]] / ref.K[:, [0, 1], [0, 1]] - 1).max(axis=1)
+    return {"fx_pct": 100 * focal, "pp_px": np.abs(rig.K[:, :2, 2] - ref.K[:, :2, 2]).max(axis=1),
+            "centre_mm": 1000 * np.linalg.norm(rig.centers - ref.centers, axis=1),
+            "rotation_deg": rotation_angle_deg(rig.R, ref.R)}
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

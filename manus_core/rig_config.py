@@ -125,9 +125,11 @@ class SimConfig:
     __pydantic_config__ = CLOSED   # unknown keys are errors
 
     cube_edge: between(Float, 0.5, 3, "m") = 1.2   # the table (0.4 m) stands inside
-    tag_size: between(Float, 0.02, 1, "m") = 0.24   # smaller tags make the walls' textures huge
-    tags_per_wall: between(Int, 0, 9) = 3   # 6 walls of 9x9 tags use 486 of the 587 ids of 36h11
-    table_tags: Bool = False   # tags on the table's sides too (up to 36 more ids)
+    # 5 x 5 tags of 16 cm a wall and on the table's sides: intrinsics from the tags down to 320x180
+    # (docs/calibration.md); smaller tags make the walls' textures huge
+    tag_size: between(Float, 0.02, 1, "m") = 0.16
+    tags_per_wall: between(Int, 0, 9) = 5   # 6 walls of 9x9 tags use 486 of the 587 ids of 36h11
+    table_tags: Bool = True   # tags on the table's sides too (up to 36 more ids)
     subject: Literal[SIM_SUBJECTS] = "s01"
     object: Literal["box", "mug", "sphere"] = "mug"
     paint: Bool = False

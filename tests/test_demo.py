@@ -55,8 +55,11 @@ def test_stages_agree_with_the_simulators_truth(demo):
     sync = stage(summary, "sync")
     assert sync["drops_found"] == sync["drops_true"]
     calib = stage(summary, "calibrate")
-    # 12 cameras at 320x180 seeing tags 1-2 m away: a few millimetres (the 53-camera test holds 2 mm)
-    assert calib["centre_err_mm_max"] < 10 and calib["rotation_err_deg_max"] < 0.5, calib
+    # intrinsics and poses from the tags alone, 12 cameras at 320x180 (measured: focal length 0.16 %,
+    # principal point 0.62 px, centres 2.3 mm, rotations 0.15 deg at worst; the 53-camera test at
+    # 640x360 holds 0.3 %, 1 px, 2 mm, 0.1 deg)
+    assert calib["fx_err_pct_max"] < 0.5 and calib["pp_err_px_max"] < 2.0, calib
+    assert calib["centre_err_mm_max"] < 5 and calib["rotation_err_deg_max"] < 0.3, calib
     ann = stage(summary, "annotate")
     # 2 px detector noise at 320x180 is ~5 mm per view at 1 m; 12 views and the skeleton bring it down
     assert ann["fitted_mpjpe_mm"] < 8 and ann["bone_length_err_mm"] < 4, ann

@@ -57,7 +57,9 @@ def _faces(edge: float) -> tuple[Face, ...]:
 
 
 def _padding(n: int) -> int:
-    """Border texels round a tile of n texels so that it starts on a whole texel at every mip level."""
+    """Border texels round a tile of n (even) texels so that it starts on a whole texel at every mip level."""
+    if n % 2:
+        raise ValueError(f"a tile of {n} texels: an odd count cannot be padded to the mip step")
     step = 2 ** (MIP_LEVELS - 1)
     pad = step
     while (n + 2 * pad) % step:
@@ -226,7 +228,8 @@ class World:
     def table_atlas(self) -> Atlas:
         """The table's sides: its wood (unlit albedo; the renderer shades it) with their tags."""
         face = self.table_faces[0]
-        cols, rows = int(np.ceil(face.width / self.texel)), int(np.ceil(face.height / self.texel))
+        # whole texels, an even count: a border then brings each tile to a multiple of the mip step
+        cols, rows = (2 * int(np.ceil(x / self.texel / 2)) for x in (face.width, face.height))
         v, u = (np.mgrid[:rows, :cols] + 0.5) * self.texel
         tiles = []
         for fi, face in enumerate(self.table_faces, start=len(self.faces)):

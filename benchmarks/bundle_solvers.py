@@ -1,9 +1,11 @@
 """Bundle adjustment: the project's Levenberg-Marquardt against scipy and pycolmap on one problem.
 
-    .venv/bin/python benchmarks/bench_bundle.py [--quick] [--repeats N]
+    .venv/bin/python benchmarks/bundle_solvers.py [--quick] [--repeats N]
+
+(bench_calibration.py runs it too, as part of `make bench`.)
 
 The problem (no images are rendered): the 53 true cameras of the simulated cube (1280x720, seed 1)
-look at the 1472 corners of a dense wall-tag layout (8x8 tags of 9 cm per wall). Every corner a
+look at the 1616 corners of a dense tag layout (8x8 tags of 9 cm per wall, and the table's sides). Every corner a
 camera sees (in the image, in front of it) is observed with 0.05 px Gaussian noise (a detector's
 precision), and 1 % of the observations are gross outliers (3..8 px off); corners seen by one
 camera only are left out (COLMAP refuses them). Every camera starts perturbed, each amount in a
@@ -72,7 +74,7 @@ class Problem:
 
 def make_problem(cameras: int | None, seed: int = 7) -> Problem:
     truth = true_cameras(make_rig(resolution=(1280, 720), seed=1, cameras=cameras))
-    pid, X = tags_from_dict(World(tags_per_wall=8, tag_size=0.09).tags_json()).points()
+    pid, X = tags_from_dict(World(tags_per_wall=8, tag_size=0.09, table_tags=True).tags_json()).points()
     uv = truth.project(X)                                   # (C,N,2), NaN behind a camera
     Xc = truth.to_camera(X)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -252,26 +254,23 @@ def timed(run, repeats: int) -> tuple[float, BundleState, int]:
     return best, *out
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="12 cameras instead of 53")
-    ap.add_argument("--repeats", type=int, default=3, help="runs per solver, the best one timed")
-    args = ap.parse_args()
-    p = make_problem(12 if args.quick else None)
+def compare(cameras: int | None = None, repeats: int = 3) -> None:
+    """Solve the problem with each solver and print the table and the time ratios."""
+    p = make_problem(cameras)
     C, M = len(p.truth), len(p.obs)
     print(f"{C} cameras, {len(np.unique(p.obs.point))} tag corners, {M} observations "
           f"({int((~p.inlier).sum())} gross outliers), {C * (6 + N_FREE)} free parameters; "
-          f"{args.repeats} runs each, one thread")
+          f"{repeats} runs each, one thread")
 
     rows = {"start": (float("nan"), p.start, 0)}
-    rows["own"] = timed(lambda: solve_own(p), args.repeats)
-    rows["scipy"] = timed(lambda: solve_scipy(p), args.repeats)
+    rows["own"] = timed(lambda: solve_own(p), repeats)
+    rows["scipy"] = timed(lambda: solve_scipy(p), repeats)
     try:
         for name, outlier_pass in (("pycolmap", False), ("pycolmap+pass", True)):
             # the Reconstruction is built anew for each run (the adjuster changes it in place) and
             # timed with it: converting the project's state is part of using COLMAP's adjuster
             best = np.inf
-            for _ in range(args.repeats):
+            for _ in range(repeats):
                 t0 = time.perf_counter()
                 rec, index = colmap_model(p)
                 state, its = solve_pycolmap(p, rec, index, outlier_pass)
@@ -294,6 +293,14 @@ def main() -> int:
     for name in ("scipy", "pycolmap", "pycolmap+pass"):
         if name in rows:
             print(f"time {name} / own: {rows[name][0] / own:.2f}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="12 cameras instead of 53")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per solver, the best one timed")
+    args = ap.parse_args()
+    compare(12 if args.quick else None, args.repeats)
     return 0
 
 

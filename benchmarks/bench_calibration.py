@@ -199,7 +199,8 @@ def simulated_cube(width: int, height: int, seconds: float = 0.05) -> None:
     worst = {k: est.ids[int(np.argmax(v))] for k, v in errors.items()}
     print("worst camera: " + ", ".join(f"{k} {c}" for k, c in worst.items()))
     over = sorted({est.ids[i] for k, v in errors.items() for i in np.flatnonzero(v > BOUNDS[k])})
-    print(f"cameras outside a bound: {', '.join(over) or 'none'}; named weakly constrained: {', '.join(weak) or 'none'}")
+    print(f"cameras outside a bound: {', '.join(over) or 'none'}; "
+          f"named weakly constrained: {', '.join(weak) or 'none'}")
     print(f"manus-capture calibrate rig: {len(est)} of {len(truth)} cameras, reprojection median "
           f"{result.median_px:.3f} px, RMS {result.rms_px:.3f} px, wall time {wall:.1f} s (goal: under 180 s)")
     print("aniposelib: no result possible (it calibrates from a board moved through the volume, not wall tags)")

@@ -158,7 +158,8 @@ class Demo:
         err = camera_errors(load_cameras(self.calib / "cameras.json"), truth)
         return {"fx_err_pct_median": float(np.median(err["fx_pct"])), "fx_err_pct_max": float(err["fx_pct"].max()),
                 "pp_err_px_max": float(err["pp_px"].max()),
-                "centre_err_mm_median": float(np.median(err["centre_mm"])), "centre_err_mm_max": float(err["centre_mm"].max()),
+                "centre_err_mm_median": float(np.median(err["centre_mm"])),
+                "centre_err_mm_max": float(err["centre_mm"].max()),
                 "rotation_err_deg_max": float(err["rotation_deg"].max()), "reprojection_rms_px": result.rms_px,
                 "weak_cameras": sum(bool(e.get("weak")) for e in result.extra.get("intrinsics", {}).values())}
 

@@ -22,7 +22,8 @@ OFF_MM = 1.5
 EXPLAINED_MM = 1.0
 REORDERINGS = {"mirrored left to right": [1, 0, 3, 2], "mirrored top to bottom": [3, 2, 1, 0],
                "mirrored about a diagonal": [0, 3, 2, 1], "mirrored about the other diagonal": [2, 1, 0, 3],
-               "rotated by 90 deg": [1, 2, 3, 0], "rotated by 180 deg": [2, 3, 0, 1], "rotated by 270 deg": [3, 0, 1, 2]}
+               "rotated by 90 deg": [1, 2, 3, 0], "rotated by 180 deg": [2, 3, 0, 1],
+               "rotated by 270 deg": [3, 0, 1, 2]}
 
 
 def check_layout(rig: CameraRig, detections: dict[str, dict[int, Detection]], layout: TagLayout) -> dict:
@@ -58,6 +59,7 @@ def _why(found: np.ndarray, listed: np.ndarray) -> str:
             return f"{name} in tags.json"
     side, listed_side = (float(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1).mean()) for c in (found, listed))
     if abs(side / listed_side - 1) > 0.02:
-        return f"its side is {1000 * side:.1f} mm, tags.json gives {1000 * listed_side:.1f} mm (printed at another size?)"
+        return (f"its side is {1000 * side:.1f} mm, tags.json gives {1000 * listed_side:.1f} mm "
+                "(printed at another size?)")
     shift = 1000 * float(np.linalg.norm(found.mean(axis=0) - listed.mean(axis=0)))
     return f"it is {shift:.1f} mm from where tags.json puts it (moved?)"

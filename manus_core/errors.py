@@ -180,6 +180,13 @@ class ExtrinsicsError(CalibrationError):
     """Cameras that cannot be placed; the message names them and says why."""
 
 
+class UnplacedCamerasError(ExtrinsicsError):
+    """Cameras the calibration ran on but could not place, from their tags nor from the scene
+    (exit code 1: the work ran and failed); the message names them and says why."""
+
+    exit_code = 1
+
+
 class ColmapError(CalibrationError):
     """COLMAP could not register the cameras, or the result cannot be put into the world frame."""
 

@@ -285,3 +285,33 @@ def test_calibrate_rig_needs_nothing_but_the_take(recorded_alone):
     assert rotation_angle_deg(est.R[keep], ref.R[keep]).max() < 0.1
     assert "Intrinsics estimated from the tags" in (out / "report.md").read_text()
 
+
+
+def test_calibrate_rig_names_what_it_cannot_do(recorded_alone, tmp_path):
+    """Without tags.json anywhere it looks: one line naming where it looked and --tags, exit 2. A
+    camera that sees no tag and shares no scene features with the others (a grey picture, as with
+    its lens cap on): named, exit 1; with --allow-partial the others are calibrated and it is left out."""
+    import subprocess
+
+    from click.testing import CliRunner
+
+    from manus_capture.cli import cli
+
+    _, out, _ = recorded_alone
+    cams = out.parent / "session" / "calib" / "cams"
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for cam in ("x+11", "y+11", "x-11", "y-11", "z+00"):
+        (videos / f"{cam}.mkv").symlink_to(cams / f"{cam}.mkv")
+    subprocess.run(["ffmpeg", "-v", "error", "-f", "lavfi", "-i", "color=c=gray:s=480x270:r=120", "-frames:v", "6",
+                    "-c:v", "mjpeg", str(videos / "capped.mkv")], check=True)
+    res = CliRunner().invoke(cli, ["calibrate", "rig", str(videos), "--workers", "1", "-o", str(tmp_path / "a")])
+    assert res.exit_code == 2 and "no tags.json in" in res.output and "--tags FILE" in res.output, res.output
+    tags = out.parent / "session" / "tags.json"
+    args = ["calibrate", "rig", str(videos), "--tags", str(tags), "--workers", "1"]
+    res = CliRunner().invoke(cli, [*args, "-o", str(tmp_path / "b")])
+    assert res.exit_code == 1 and "camera capped: sees no tag of" in res.output, res.output
+    assert "--allow-partial" in res.output and not (tmp_path / "b" / "cameras.json").exists()
+    res = CliRunner().invoke(cli, [*args, "--allow-partial", "-o", str(tmp_path / "c")])
+    assert res.exit_code == 0 and "left out: camera capped: sees no tag of" in res.output, res.output
+    assert sorted(load_cameras(tmp_path / "c" / "cameras.json").ids) == ["x+11", "x-11", "y+11", "y-11", "z+00"]

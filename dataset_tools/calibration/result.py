@@ -70,11 +70,12 @@ def rig_from_state(ids, state: BundleState, sizes, stats: dict[str, CameraStats]
     return CameraRig(tuple(ids), K, dist, rotvec_to_matrix(state.cam_rvec), state.cam_t, np.asarray(sizes), rms)
 
 
-def require_all(names: list[str], problems: dict[str, str], allow_partial: bool) -> None:
-    """Raise, naming every camera and why, unless allow_partial (then the result leaves them out)
-    and some camera is left."""
+def require_all(names: list[str], problems: dict[str, str], allow_partial: bool,
+                error: type[ExtrinsicsError] = ExtrinsicsError) -> None:
+    """Raise `error`, naming every camera and why, unless allow_partial (then the result leaves
+    them out) and some camera is left."""
     left = len(set(names) - set(problems))
     if problems and (not allow_partial or not left):
         listed = "; ".join(f"camera {n}: {m}" for n, m in problems.items())
         hint = "fix the input" + ("" if allow_partial else " or pass --allow-partial for a result without them")
-        raise ExtrinsicsError(f"{len(problems)} of {len(names)} cameras cannot be calibrated ({listed}); {hint}")
+        raise error(f"{len(problems)} of {len(names)} cameras cannot be calibrated ({listed}); {hint}")

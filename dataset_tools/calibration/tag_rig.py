@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from manus_core.errors import ExtrinsicsError
+from manus_core.errors import ExtrinsicsError, UnplacedCamerasError
 from manus_core.rotations import matrix_to_rotvec, rotation_angle_deg, rotvec_to_matrix
 
 from .boards import TagLayout
@@ -101,7 +101,8 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
         placed[name] = T
         pnp_rms[name] = out[3]
     if not placed:
-        require_all(names, {**problems, **{n: s[0] for n, s in short.items()}}, allow_partial)
+        require_all(names, {**problems, **{n: s[0] for n, s in short.items()}}, allow_partial,
+                    UnplacedCamerasError)
         raise ExtrinsicsError("no camera could be placed from the tags")
     cams = [n for n in names if n in placed]
     obs, pidx = _tag_observations(detections, cams, lookup)
@@ -132,7 +133,7 @@ def calibrate_tag_rig(detections: dict[str, dict[int, Detection]], sizes: dict[s
                                           intrinsics.get(name), initial_poses[name])
         else:
             problems[name] = why
-    require_all(names, problems, allow_partial)
+    require_all(names, problems, allow_partial, UnplacedCamerasError)
     outliers = result.outliers
     if late:
         result = _adjust_late(result, cams, late, anchors, detections, lookup, world, layout, refine_tags,

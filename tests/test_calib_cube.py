@@ -61,7 +61,7 @@ def errors(result, truth):
     return dict(zip(est.ids, centre_mm)), dict(zip(est.ids, rotation_angle_deg(est.R, ref.R)))
 
 
-def test_53_cameras_from_tags_within_2mm_and_a_tenth_of_a_degree(cube):
+def test_53_camera_poses_from_tags_given_the_true_intrinsics(cube):
     truth, _, images, _, layout = cube
     assert len(truth) == 53
     result = calibrate_rig(images, tags=layout, intrinsics=truth, method="tags", workers=1)
@@ -74,7 +74,7 @@ def test_53_cameras_from_tags_within_2mm_and_a_tenth_of_a_degree(cube):
     assert abs(result.extra["checks"]["scale"]["error_pct"]) < 0.1
 
 
-def test_cameras_without_tags_are_placed_from_the_scene(cube):
+def test_cameras_without_tags_placed_from_the_scene_given_the_true_intrinsics(cube):
     _, truth, images, into_table, layout = cube
     views = {**images, **into_table}
     result = calibrate_rig(views, tags=layout, intrinsics=truth, method="tags", workers=1)
@@ -213,7 +213,7 @@ def recorded(tmp_path_factory):
     return res, out, CameraRig(ids, K, dist, R, t, [[480, 270]] * len(ids))
 
 
-def test_calibrate_rig_command_on_a_recorded_take(recorded):
+def test_calibrate_rig_command_with_the_true_intrinsics_as_a_file(recorded):
     res, out, truth = recorded
     assert res.exit_code == 0, res.output
     assert "wrote" in res.output and "12 cameras" in res.output and "complete" in res.output

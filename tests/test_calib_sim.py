@@ -29,7 +29,7 @@ def scene():
     return truth, tags_from_dict(world.tags_json()), images
 
 
-def test_tags_and_colmap_recover_the_true_cameras(scene, tmp_path):
+def test_tags_and_colmap_recover_the_true_poses_given_the_true_intrinsics(scene, tmp_path):
     truth, layout, images = scene
     result = calibrate_rig(images, tags=layout, intrinsics=truth, method="both", workers=1, output=tmp_path)
     assert not result.partial and set(result.rig.ids) == set(truth.ids)

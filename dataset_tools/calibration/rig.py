@@ -37,7 +37,7 @@ from .features import scene_anchors
 from .formats import load_cameras, save_cameras
 from .frames import FrameSource, read_frames, subsample, unreadable
 from .intrinsics import calibrate_intrinsics
-from .layout_check import check_layout
+from .layout_check import OFF_MM, REFINED_OFF_MM, check_layout
 from .report import build_report, cross_check, scale_check, write_report
 from .result import RigCalibration, require_all
 from .tag_intrinsics import TagIntrinsics, corner_table, estimate_intrinsics, without_poor_tags, without_tags
@@ -162,7 +162,7 @@ def calibrate_rig(images: Images | None = None, *, take: str | os.PathLike | Non
                                          free_intrinsics={c: e.free() for c, e in estimated.items()
                                                           if isinstance(e, TagIntrinsics)})
             result = solve(tag_dets, layout)
-            checks["layout"] = check_layout(result.rig, tag_dets, layout)
+            checks["layout"] = check_layout(result.rig, tag_dets, layout, REFINED_OFF_MM if refine_tags else OFF_MM)
             if checks["layout"]["disagreeing"]:
                 # the tags tags.json misplaces are named in the report and left out of a second solve
                 wrong = [int(t) for t in checks["layout"]["disagreeing"]]

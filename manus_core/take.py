@@ -159,20 +159,23 @@ class Take:
     def read_frames(self, cam: str, indices) -> dict[int, np.ndarray]:
         """{k: image (H,W,3) BGR uint8} for the frame indices asked for (-1 ignored), in one pass
         over the video: only those are decoded."""
-        wanted = {int(k) for k in indices if k >= 0}
-        out: dict[int, np.ndarray] = {}
-        if not wanted:
-            return out
-        path, last = self.video_path(cam), max(wanted)
+        return dict(self.stream_frames(cam, indices))
+
+    def stream_frames(self, cam: str, indices) -> Iterator[tuple[int, np.ndarray]]:
+        """(k, image) for the distinct frame indices asked for (-1 ignored), in increasing order,
+        in one pass over the video that stops after the last: only those are decoded, and only one
+        is held at a time. A video without one of them raises TakeError naming the file."""
+        wanted = np.unique([int(k) for k in indices if k >= 0])
+        if not len(wanted):
+            return
+        path, i = self.video_path(cam), 0
         for k, packet in enumerate(self.packets(cam)):
-            if k in wanted:
-                out[k] = _decode(packet, path, k)
-            if k >= last:
-                break
-        missing = wanted - set(out)
-        if missing:
-            raise TakeError(f"{path}: has no frame {min(missing)}")
-        return out
+            if k == wanted[i]:
+                yield k, _decode(packet, path, k)
+                i += 1
+                if i == len(wanted):
+                    return
+        raise TakeError(f"{path}: has no frame {wanted[i]}")
 
     def _check_camera(self, cam: str) -> None:
         if cam not in self.cameras:

@@ -57,7 +57,7 @@ def sample_frames(take: Take, cam: str, count: int = 5) -> np.ndarray:
     n = take.frame_count(cam)
     if n == 0:
         raise SegmentationError(f"{take.path}: camera {cam} has no frames")
-    return np.stack([take.read_frame(cam, int(k)) for k in np.unique(np.linspace(0, n - 1, count).astype(int))])
+    return np.stack([image for _, image in take.stream_frames(cam, np.linspace(0, n - 1, count).astype(int))])
 
 
 def backgrounds_for(take: Take, cameras: Sequence[str], background: Take, report: dict) -> list[BackgroundModel | None]:
@@ -185,12 +185,21 @@ def _segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_
     object_take = take.meta.get("kind") == "object"
     hand = np.zeros((len(frame_index), len(rig), h, w), bool)
     obj = np.zeros_like(hand)
+    # one sequential pass over each camera's video: a group's frames come later in every video
+    # than the previous group's (reading each frame from the start made the cost grow with the
+    # square of the take's length)
+    streams = [take.stream_frames(cam, frame_index[:, c]) for c, cam in enumerate(rig.ids)]
+    current = [(-1, None)] * len(rig)
     for t in range(len(frame_index)):
         images = np.zeros((len(rig), h, w, 3), np.uint8)
         present = frame_index[t] >= 0
-        for c, cam in enumerate(rig.ids):
-            if present[c]:
-                images[c] = take.read_frame(cam, int(frame_index[t, c]))
+        for c in np.flatnonzero(present):
+            while current[c][0] < frame_index[t, c]:
+                current[c] = next(streams[c])
+            if current[c][0] != frame_index[t, c]:
+                raise SegmentationError(f"{take.path}: camera {rig.ids[c]}: frame groups out of time order "
+                                        f"(frame {frame_index[t, c]} after {current[c][0]})")
+            images[c] = current[c][1]
         bgs = [b if p else None for b, p in zip(backgrounds, present)]
         found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
         hand[t], obj[t] = (found_object, found_hand) if object_take else (found_hand, found_object)

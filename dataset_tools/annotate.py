@@ -26,10 +26,8 @@ same now; otherwise it is redone and the summary says why. Uncalibrated cameras 
 
 from __future__ import annotations
 
-import concurrent.futures as cf
-import multiprocessing
 import zlib
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,6 +50,7 @@ from .keypoints.keypoints2d import TakeKeypoints, detect_take, read_keypoints_h5
 from .one_euro import one_euro
 from .simulated_detector import SimulatedDetector, simulated_take_keypoints
 from .sync import GROUPS_FILE, frame_groups
+from .tasks import run_tasks
 from .triangulation import triangulate_frames
 
 Groups = tuple[np.ndarray, np.ndarray]  # frame_ns (T,), frame_index (T,C)
@@ -277,39 +276,6 @@ def annotate_take(task: TakeTask) -> TakeAnnotation:
 
 # --- running many takes ----------------------------------------------------------------------------
 
-def _outcomes(futures: dict, finished: Iterable) -> Iterator[tuple[TakeTask, object]]:
-    for fut in finished:
-        try:
-            yield futures[fut], fut.result()
-        except Exception as exc:  # a failed take is reported, the others go on
-            yield futures[fut], exc
-
-
-def _run(fn: Callable, tasks: list[TakeTask], workers: int, scheduler: str | None) -> Iterator[tuple[TakeTask, object]]:
-    """(task, result or exception) as tasks finish: inline, process pool or Dask."""
-    if not tasks:
-        return
-    if scheduler:
-        # Dask is optional and slow to import: only a run on a cluster needs it
-        from distributed import Client, as_completed
-
-        with Client(scheduler) as client:
-            futures = {client.submit(fn, t, pure=False, key=f"annotate-{fn.__name__}-{t.key}"): t for t in tasks}
-            yield from _outcomes(futures, as_completed(futures))
-        return
-    if workers > 1:
-        ctx = multiprocessing.get_context("forkserver")
-        with cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            futures = {pool.submit(fn, t): t for t in tasks}
-            yield from _outcomes(futures, cf.as_completed(futures))
-        return
-    for t in tasks:
-        try:
-            yield t, fn(t)
-        except Exception as exc:
-            yield t, exc
-
-
 def take_key(path: Path) -> str:
     """The take's group in DATASET.h5: SESSION/TAKE (folder names)."""
     path = Path(path).resolve()
@@ -388,6 +354,10 @@ class AnnotateSummary:
     subjects: dict[str, str] = field(default_factory=dict)
 
 
+def _take_key(task: TakeTask) -> str:
+    return f"annotate-{task.key}"
+
+
 def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
              options: AnnotateOptions = AnnotateOptions(), *, workers: int = 1, scheduler: str | None = None,
              force: bool = False, bones: str | Path | np.ndarray | None = None,
@@ -439,7 +409,7 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
     session_bones = _session_bones(todo, list(zip(opened, keys)), bones, make_task, workers, scheduler, summary)
     # built after the session's bones: a subject file written by this run is what the takes depend on
     tasks = [make_task(t, k, *session_bones.get(t.path.resolve().parent, (None, "take"))) for t, k in todo]
-    for task, result in _run(annotate_take, tasks, workers, scheduler):
+    for task, result in run_tasks(annotate_take, tasks, workers, scheduler, key=_take_key):
         if isinstance(result, KeyboardInterrupt):
             raise result
         if isinstance(result, BaseException):
@@ -481,7 +451,7 @@ def _session_bones(todo, every, bones, make_task, workers, scheduler, summary) -
         return out
     samples: dict[Path, list[tuple[np.ndarray, float]]] = {s: [] for s in pending}
     tasks = [t for hand in pending.values() for t in hand]
-    for task, result in _run(hand_take_samples, tasks, workers, scheduler):
+    for task, result in run_tasks(hand_take_samples, tasks, workers, scheduler, key=_take_key):
         if isinstance(result, BaseException):
             raise AnnotateError(f"{task.path}: bone lengths of the subject: {result}") from None
         samples[Path(task.path).resolve().parent].append(result)

@@ -191,6 +191,10 @@ class ColmapError(CalibrationError):
     """COLMAP could not register the cameras, or the result cannot be put into the world frame."""
 
 
+class SchedulerError(InputError):
+    """A Dask scheduler address that does not answer; the message names it."""
+
+
 class DatasetError(InputError):
     """A dataset file that cannot be read or written as asked; names the file."""
 

@@ -361,3 +361,22 @@ def test_recorded_sim_take_end_to_end(tmp_path):
     error = np.linalg.norm(ann.keypoints3d - gt.hand.joints3d[tick], axis=-1)
     # 2 px of detector noise is ~1 cm per view at 320x180 and 1 m; 8 views bring it to ~6 mm (measured 5.9)
     assert len(tick) >= 34 and np.nanmedian(error) < 0.008, np.nanmedian(error)
+
+
+def test_a_scheduler_that_does_not_answer_is_named_within_ten_seconds(session, tmp_path):
+    import socket
+    import time
+
+    from click.testing import CliRunner
+
+    from manus_capture.cli import cli
+
+    with socket.socket() as s:   # a free port, closed again: nothing answers there
+        s.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    start = time.monotonic()
+    res = CliRunner().invoke(cli, ["annotate", *map(str, session["takes"]), "--calib", str(session["root"] / "calib"),
+                                   "--keypoints", "simulated", "--scheduler", address, "-o", str(tmp_path / "D.h5")])
+    assert time.monotonic() - start < 10
+    assert res.exit_code == 2 and f"the Dask scheduler {address} does not answer" in res.output, res.output
+    assert "Traceback" not in res.output and not (tmp_path / "D.h5").exists()

@@ -11,6 +11,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 
+from dataset_tools.calibration.formats import load_cameras
 from manus_capture import api
 from manus_capture.cli import cli
 from manus_capture.splat.checkpoint import load_checkpoint
@@ -232,3 +233,21 @@ def test_api_reconstruct_contacts_evaluate(demo, tmp_path):
     baseline, _ = api.score_contacts(template, pose, api.model_contacts(template, angles, obj).accumulated, rig,
                                      paint[order], views)
     assert abs(baseline.mean_iou - summary["baseline_iou"]) < 1e-6
+
+
+def test_true_calibration_ablation_feeds_the_simulators_cameras(demo, tmp_path):
+    """--true-calibration, the one ablation that hands the simulator's intrinsics and poses to the
+    pipeline: calibrate writes the take's true cameras instead of calibrating."""
+    from manus_capture.demo import Demo, DemoConfig
+    from manus_capture.splat.takes import truth_cameras
+
+    out, _, _ = demo
+    (tmp_path / "session").symlink_to(out / "session")
+    ablation = Demo(tmp_path, DemoConfig(true_calibration=True), say=lambda _: None)
+    assert ablation.calibrate() == {"source": "simulator (--true-calibration)"}
+    written = load_cameras(tmp_path / "calib" / "cameras.json")
+    truth = truth_cameras(out / "session" / "00-calibration")
+    assert written.ids == truth.ids and np.array_equal(written.K, truth.K) and np.allclose(written.t, truth.t)
+    # the demo itself calibrated from the tags: its focal lengths are not the simulator's
+    estimated = load_cameras(out / "calib" / "cameras.json").subset(truth.ids)
+    assert not np.allclose(estimated.K, truth.K)

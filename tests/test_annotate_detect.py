@@ -102,3 +102,25 @@ def test_detect_keypoints_on_rendered_frames_triangulate_near_the_truth(installe
     assert np.median(error_3d) < 0.009 and np.percentile(error_3d, 90) < 0.015, np.percentile(error_3d, [50, 90])
     fitted = np.linalg.norm(ann.fitted_joints(False) - truth, axis=-1)
     assert np.median(fitted) < 0.008, np.median(fitted)
+
+
+def test_detect_split_over_processes_gives_the_single_process_keypoints(installed, rendered, tmp_path):
+    """`detect --workers 2`: the take split into one task per camera and frame (15 tasks), run in two
+    processes, gives what one process gives, camera by camera."""
+    from click.testing import CliRunner
+
+    from manus_capture.cli import cli
+
+    take = rendered["take"]
+    runs = {}
+    for name, extra in (("inline", []), ("pool", ["--workers", "2"])):
+        out = tmp_path / f"{name}.h5"
+        res = CliRunner().invoke(cli, ["detect", str(take), "--device", "cpu", "--chunk", "1", "--frames-per-task", "1",
+                                       *extra, "-o", str(out)])
+        assert res.exit_code == 0, res.output
+        runs[name] = read_keypoints_h5(out)
+    for cam in CAMERAS:
+        a, b = runs["inline"].cameras[cam], runs["pool"].cameras[cam]
+        assert a.keypoints.shape == (len(TICKS), 21, 3) and (a.keypoints[:, 0, 2] > 0.5).all()
+        np.testing.assert_allclose(b.keypoints, a.keypoints, atol=1e-3)
+        np.testing.assert_allclose(b.boxes, a.boxes, atol=1e-3)

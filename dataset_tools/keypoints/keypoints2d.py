@@ -94,17 +94,101 @@ def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | N
     progress("detect", done, total)
     result = {}
     for cam in cameras:
-        F = take.frame_count(cam)
-        kp = np.full((F, NUM_JOINTS, 3), np.nan, np.float32)
-        kp[..., 2] = 0
-        used = np.full((F, 5), np.nan)
-        frames = take.iter_frames(cam)
-        while batch := list(islice(frames, chunk)):
-            _detect_batch(detector, batch, None if boxes is None else boxes[cam], min_score, kp, used)
-            done += len(batch)
+        kp, used = _empty(take.frame_count(cam))
+        for n in _detect_frames(detector, take.iter_frames(cam), None if boxes is None else boxes[cam], chunk,
+                                min_score, kp, used):
+            done += n
             progress("detect", done, total)
-        result[cam] = CameraKeypoints(kp, used[:, :4].astype(np.float32), used[:, 4].astype(np.float32))
+        result[cam] = _camera_keypoints(kp, used)
     return result
+
+
+@dataclass(frozen=True)
+class DetectTask:
+    """Frames [start, stop) of one camera of a take, for a worker (picklable: a process pool or Dask)."""
+
+    take: str
+    camera: str
+    start: int
+    stop: int
+    model: str
+    device: str
+    chunk: int
+    min_score: float
+    boxes: np.ndarray | None   # (stop - start, 5) of these frames; None: the palm detector
+
+
+_DETECTORS: dict[tuple[str, str], Detector] = {}
+
+
+def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
+    """(keypoints (n,21,3), boxes and angles used (n,5)) of a DetectTask's frames; the detector is
+    loaded once per process."""
+    from .detector import hand_keypoint_detector
+
+    if (task.model, task.device) not in _DETECTORS:
+        _DETECTORS[task.model, task.device] = hand_keypoint_detector(task.model, device=task.device)
+    kp, used = _empty(task.stop - task.start)
+    frames = ((k - task.start, image) for k, image in Take(task.take).iter_frames(task.camera, task.start, task.stop))
+    for _ in _detect_frames(_DETECTORS[task.model, task.device], frames, task.boxes, task.chunk, task.min_score,
+                            kp, used):
+        continue   # the batches' counts are for detect_take's progress
+    return kp, used
+
+
+def detect_take_tasks(take: Take, model: str, device: str = "auto", boxes: dict[str, np.ndarray] | None = None,
+                      cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
+                      frames_per_task: int = 256) -> list[DetectTask]:
+    """A take's detection split by camera and frame range: whole chunks per task, so that every
+    network call sees the frames it would in one pass over the camera."""
+    span = max(1, frames_per_task // chunk) * chunk
+    return [DetectTask(str(take.path.resolve()), cam, start, min(start + span, n), model, device, chunk, min_score,
+                       None if boxes is None else boxes[cam][start:start + span])
+            for cam in (cameras or take.cameras) for n in (take.frame_count(cam),) for start in range(0, n, span)]
+
+
+def detect_tasks(take: Take, tasks: list[DetectTask], workers: int = 1, scheduler: str | None = None,
+                 progress: Progress = silent) -> dict[str, CameraKeypoints]:
+    """Run detect_take_tasks' tasks (inline, in `workers` processes or on the Dask `scheduler`) and
+    put each camera's keypoints together; the first failed task's error is raised."""
+    from ..tasks import run_tasks
+
+    cameras = list(dict.fromkeys(t.camera for t in tasks))
+    arrays = {cam: _empty(take.frame_count(cam)) for cam in cameras}
+    total, done = sum(t.stop - t.start for t in tasks), 0
+    progress("detect", done, total)
+    for task, out in run_tasks(detect_range, tasks, workers, scheduler, key=_task_key):
+        if isinstance(out, Exception):
+            raise out
+        for whole, part in zip(arrays[task.camera], out):
+            whole[task.start:task.stop] = part
+        done += task.stop - task.start
+        progress("detect", done, total)
+    return {cam: _camera_keypoints(*arrays[cam]) for cam in cameras}
+
+
+def _task_key(task: DetectTask) -> str:
+    return f"detect-{Path(task.take).name}-{task.camera}-{task.start}"
+
+
+def _empty(frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoints (F,21,3) NaN with confidence 0, boxes and angles (F,5) NaN: nothing found yet."""
+    kp = np.full((frames, NUM_JOINTS, 3), np.nan, np.float32)
+    kp[..., 2] = 0
+    return kp, np.full((frames, 5), np.nan)
+
+
+def _camera_keypoints(kp: np.ndarray, used: np.ndarray) -> CameraKeypoints:
+    return CameraKeypoints(kp, used[:, :4].astype(np.float32), used[:, 4].astype(np.float32))
+
+
+def _detect_frames(detector: Detector, frames, boxes: np.ndarray | None, chunk: int, min_score: float,
+                   kp: np.ndarray, used: np.ndarray):
+    """Detect `chunk` frames ((index, image) pairs) at a time into kp and used; yields the count of
+    each batch done."""
+    while batch := list(islice(frames, chunk)):
+        _detect_batch(detector, batch, boxes, min_score, kp, used)
+        yield len(batch)
 
 
 def _detect_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], boxes: np.ndarray | None,

@@ -8,7 +8,13 @@ from pathlib import Path
 import click
 
 from dataset_tools.keypoints import hand_keypoint_detector
-from dataset_tools.keypoints.keypoints2d import TakeKeypoints, detect_take, load_boxes, write_keypoints_h5
+from dataset_tools.keypoints.keypoints2d import (
+    TakeKeypoints,
+    detect_take_tasks,
+    detect_tasks,
+    load_boxes,
+    write_keypoints_h5,
+)
 from manus_capture import __version__
 from manus_capture.bars import Bars
 from manus_core.errors import OutputExists
@@ -31,9 +37,16 @@ from manus_core.take import Take
               help="Frames per network call.")
 @click.option("--min-score", type=click.FloatRange(0, 1), default=0.5, show_default=True,
               help="Palm detector score threshold.")
+@click.option("--workers", type=click.IntRange(1), default=1, show_default=True,
+              help="Processes on this machine; the work is split by camera and frame range.")
+@click.option("--scheduler", default=None, metavar="ADDR",
+              help="Run on a Dask cluster (tcp://HOST:PORT) instead; its workers must see the take.")
+@click.option("--frames-per-task", type=click.IntRange(1), default=256, show_default=True,
+              help="Frames of one camera per task (rounded to whole chunks).")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str | None, output: Path | None,
-            device: str, chunk: int, min_score: float, force: bool) -> None:
+            device: str, chunk: int, min_score: float, workers: int, scheduler: str | None, frames_per_task: int,
+            force: bool) -> None:
     """Detect 2D hand keypoints (21 joints, MediaPipe order) in every view of TAKE.
 
     Writes TAKE/keypoints2d.h5: per camera, keypoints (F,21,3) [x, y, confidence] indexed by the
@@ -47,11 +60,13 @@ def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str |
     for cam in cams:
         tk.video_path(cam)  # every requested camera's video must exist before hours of work start
     boxes = load_boxes(boxes_path, tk, cams) if boxes_path else None
-    detector = hand_keypoint_detector(model_name, device=device)
+    detector = hand_keypoint_detector(model_name, device=device)   # here too: a missing model stops us now
     total = sum(tk.frame_count(c) for c in cams)
     start = time.perf_counter()
+    model = str(Path(model_name).resolve()) if model_name.endswith(".toml") else model_name  # for other processes
+    tasks = detect_take_tasks(tk, model, device, boxes, cams, chunk, min_score, frames_per_task)
     with Bars(unit="frame") as bars:
-        result = detect_take(tk, detector, boxes, cams, chunk=chunk, min_score=min_score, progress=bars)
+        result = detect_tasks(tk, tasks, workers, scheduler, progress=bars)
     elapsed = time.perf_counter() - start
     write_keypoints_h5(output, TakeKeypoints(
         result, detector.name, str(detector.model.session.path),

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_annotate import session  # noqa: F401  (a fixture)
+from test_segment_cli import grasp_session  # noqa: F401  (a fixture)
 from test_annotate_detect import CAMERAS, TICKS, installed, rendered  # noqa: F401  (fixtures)
 
 from dataset_tools.keypoints.keypoints2d import read_keypoints_h5
@@ -119,3 +120,27 @@ def test_annotate_on_the_cluster_matches_a_local_run(session, cluster, tmp_path)
         for name, value in local[key].items():
             # a worker's BLAS may split a sum differently (test_annotate: 1e-16 relative)
             np.testing.assert_allclose(dask[key][name], value, rtol=1e-9, atol=1e-12, err_msg=f"{key} {name}")
+
+
+def test_segment_on_the_cluster_matches_a_local_run(grasp_session, cluster, tmp_path):  # noqa: F811
+    """One task per frame group: the masks from the cluster's two workers are the local run's."""
+    import h5py
+    from click.testing import CliRunner
+
+    from dataset_tools.annotate import take_key
+    from manus_capture.cli import cli
+
+    address, _ = cluster
+    take = grasp_session / "S" / "grasp"
+    masks = {}
+    for name, extra in (("local", []), ("dask", ["--scheduler", address])):
+        out = tmp_path / f"{name}.h5"
+        res = CliRunner().invoke(cli, ["segment", str(take), "--calib", str(grasp_session / "cameras.json"),
+                                       "--background", str(grasp_session / "S" / "empty"), "--groups-per-task", "1",
+                                       *extra, "-o", str(out)])
+        assert res.exit_code == 0, res.output
+        with h5py.File(out) as f:
+            masks[name] = {n: f[take_key(take)][n][()] for n in ("masks/hand", "masks/object")}
+    assert len(masks["local"]["masks/hand"]) >= 3 and masks["local"]["masks/hand"].any()
+    for n, value in masks["local"].items():
+        np.testing.assert_array_equal(masks["dask"][n], value, err_msg=n)

@@ -21,11 +21,11 @@ from manus_core.provenance import differences, stage_inputs, take_identity
 from manus_core.take import Take
 
 from ..sync import frame_groups
-from .background import BackgroundModel
 from .colour import PaintKey
+from .groups import GROUPS_PER_TASK, backgrounds_for, sample_frames, segment_in_tasks
 from .paint import paint_masks
 from .pngs import load_png_masks
-from .views import hand_object_masks, object_colour, paint_key_from_object
+from .views import object_colour, paint_key_from_object
 
 
 @dataclass(frozen=True)
@@ -50,29 +50,6 @@ class Segmentation:
     def in_order(self, ids: list[str] | tuple[str, ...]) -> list[int]:
         """Column of each camera of `ids` (e.g. a calibration's order) in these masks."""
         return [self.cameras.index(c) for c in ids]
-
-
-def sample_frames(take: Take, cam: str, count: int = 5) -> np.ndarray:
-    """`count` frames (N,H,W,3) spread evenly over one camera of a take."""
-    n = take.frame_count(cam)
-    if n == 0:
-        raise SegmentationError(f"{take.path}: camera {cam} has no frames")
-    return np.stack([image for _, image in take.stream_frames(cam, np.linspace(0, n - 1, count).astype(int))])
-
-
-def backgrounds_for(take: Take, cameras: Sequence[str], background: Take, report: dict) -> list[BackgroundModel | None]:
-    """One background per camera `cameras` of `take`; a camera missing from the background take
-    gets None and a warning in the report (its masks stay empty)."""
-    out = []
-    for cam in cameras:
-        if cam not in background.cameras or background.frame_count(cam) == 0:
-            report["warnings"].append(f"camera {cam}: no frames in background take {background.path}; no masks")
-            out.append(None)
-        else:
-            out.append(BackgroundModel.fit(sample_frames(background, cam)))
-    if all(b is None for b in out):
-        raise SegmentationError(f"{background.path}: shares no camera with {take.path}")
-    return out
 
 
 def _object_frames(obj: Take, cameras, backgrounds) -> tuple[np.ndarray, list]:
@@ -110,13 +87,16 @@ def take_cameras(take: Take, rig: CameraRig, wanted: Sequence[str] | None = None
 
 def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, object_path: Path | None = None,
                  swatch=None, every: int = 1, progress: Progress = silent,
-                 masks: Path | None = None, cameras: Sequence[str] | None = None) -> Segmentation:
+                 masks: Path | None = None, cameras: Sequence[str] | None = None, workers: int = 1,
+                 scheduler: str | None = None, groups_per_task: int = GROUPS_PER_TASK) -> Segmentation:
     """Masks of a take: hand and object in every frame group, and in a canonical take the paint
     (its colour from the object take or `swatch` B,G,R). The groups are those of the take's sync
     report (as annotate's), every `every`-th; the paint is segmented in the middle group of a
     canonical take (the hand holds still there). progress ("segment", groups done, groups).
     cameras: those to segment (take_cameras; by default the take's calibrated cameras, and a
-    warning names those a partial calibration leaves out).
+    warning names those a partial calibration leaves out). The groups' masks are computed in tasks
+    of `groups_per_task` groups: inline, in `workers` local processes or on the Dask `scheduler`
+    (dataset_tools.tasks.run_tasks).
 
     With `masks`, a folder of masks made by another tool, the hand and object masks are read from
     MASKS/hand/CAM/FRAME.png and MASKS/object/CAM/FRAME.png (FRAME: the camera's frame index, 6
@@ -155,7 +135,8 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
     frame_ns, frame_index = groups.frame_ns[::every], groups.frame_index[::every][:, columns]
     w, h = (int(v) for v in rig.size[0])
     if masks is None:
-        hand, obj = _segment_groups(take, rig, backgrounds, model, frame_index, (h, w), progress)
+        hand, obj = segment_in_tasks(take, rig, background_path, model, frame_index, (h, w), workers, scheduler,
+                                     progress, groups_per_task)
     else:
         hand = load_png_masks(Path(masks) / "hand", cams, frame_index, (h, w))
         objects = Path(masks) / "object"
@@ -176,35 +157,6 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
     for message in report["warnings"]:
         warnings.warn(message, stacklevel=2)
     return Segmentation(tuple(cams), frame_ns, frame_index, hand, obj, paint, middle, report)
-
-
-def _segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_index: np.ndarray,
-                    shape: tuple[int, int], progress: Progress) -> tuple[np.ndarray, np.ndarray]:
-    """Hand and object masks (T,C,H,W) of the frame groups frame_index (T,C), cameras of `rig`."""
-    h, w = shape
-    object_take = take.meta.get("kind") == "object"
-    hand = np.zeros((len(frame_index), len(rig), h, w), bool)
-    obj = np.zeros_like(hand)
-    # one sequential pass over each camera's video: a group's frames come later in every video
-    # than the previous group's (reading each frame from the start made the cost grow with the
-    # square of the take's length)
-    streams = [take.stream_frames(cam, frame_index[:, c]) for c, cam in enumerate(rig.ids)]
-    current = [(-1, None)] * len(rig)
-    for t in range(len(frame_index)):
-        images = np.zeros((len(rig), h, w, 3), np.uint8)
-        present = frame_index[t] >= 0
-        for c in np.flatnonzero(present):
-            while current[c][0] < frame_index[t, c]:
-                current[c] = next(streams[c])
-            if current[c][0] != frame_index[t, c]:
-                raise SegmentationError(f"{take.path}: camera {rig.ids[c]}: frame groups out of time order "
-                                        f"(frame {frame_index[t, c]} after {current[c][0]})")
-            images[c] = current[c][1]
-        bgs = [b if p else None for b, p in zip(backgrounds, present)]
-        found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
-        hand[t], obj[t] = (found_object, found_hand) if object_take else (found_hand, found_object)
-        progress("segment", t + 1, len(frame_index))
-    return hand, obj
 
 
 def segment_inputs(take: Take, rig: CameraRig, cameras: Sequence[str], background: Path | None,

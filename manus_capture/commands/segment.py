@@ -11,6 +11,7 @@ import numpy as np
 
 from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
+from dataset_tools.segmentation.groups import GROUPS_PER_TASK
 from dataset_tools.segmentation.takes import (
     Segmentation,
     segment_inputs,
@@ -47,10 +48,16 @@ from manus_core.take import Take
 @click.option("--every", type=click.IntRange(1), default=1, show_default=True, help="Segment every N-th frame group.")
 @click.option("--overlays", type=click.Path(path_type=Path), default=None, help="Write PNG overlays into this folder.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="DATASET.h5 to add the masks to.")
+@click.option("--workers", type=click.IntRange(1), default=1, show_default=True,
+              help="Processes on this machine; the frame groups are split into ranges.")
+@click.option("--scheduler", default=None, metavar="ADDR",
+              help="Run on a Dask cluster (tcp://HOST:PORT) instead; its workers must see the takes.")
+@click.option("--groups-per-task", type=click.IntRange(1), default=GROUPS_PER_TASK, show_default=True,
+              help="Frame groups per task.")
 @click.option("--force", is_flag=True, help="Redo the take's masks even when those in DATASET.h5 are current.")
 def command(take: Path, calib: Path, background: Path | None, masks: Path | None, object_take: Path | None,
             swatch: str | None, cameras: str | None, every: int, overlays: Path | None, output: Path,
-            force: bool) -> None:
+            workers: int, scheduler: str | None, groups_per_task: int, force: bool) -> None:
     """Segment TAKE: hand and object masks per view and frame group (background, colour, multi-view
     consistency) and, for a canonical take, the green paint on the hand (docs/segmentation.md).
     Masks of the take already in DATASET.h5 are kept when they were made from the same inputs,
@@ -77,7 +84,7 @@ def command(take: Path, calib: Path, background: Path | None, masks: Path | None
         return
     with Bars(unit="group") as bars:
         result = segment_take(take, rig, background, object_take, colour, every, progress=bars, masks=masks,
-                              cameras=cams)
+                              cameras=cams, workers=workers, scheduler=scheduler, groups_per_task=groups_per_task)
     groups = len(result.frame_ns)
     arrays, surface = _paint_on_surface(output, key, rig, result, inputs)
     write_masks(output, key, result, {"segmentation_calibration": str(calib),

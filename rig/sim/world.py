@@ -56,6 +56,12 @@ def _faces(edge: float) -> tuple[Face, ...]:
     return tuple(faces)
 
 
+def _even_texels(texels: float) -> int:
+    """Whole texels to cover a side, an even count: a border then brings the tile to a multiple of
+    the mip step (an odd count never gets there)."""
+    return 2 * int(np.ceil(round(texels, 6) / 2))
+
+
 def _padding(n: int) -> int:
     """Border texels round a tile of n (even) texels so that it starts on a whole texel at every mip level."""
     if n % 2:
@@ -220,7 +226,7 @@ class World:
     def atlas(self) -> Atlas:
         """The wall textures; a muted background so the black-and-white tags keep their contrast."""
         rng = np.random.default_rng(self.seed)
-        T = int(round(self.edge / self.texel))
+        T = _even_texels(self.edge / self.texel)
         return Atlas.of([self._texture(fi, face, 0.25 + 0.55 * _smooth_noise(rng, T, (6, 17, 45, 120)))
                          for fi, face in enumerate(self.faces)])
 
@@ -228,8 +234,7 @@ class World:
     def table_atlas(self) -> Atlas:
         """The table's sides: its wood (unlit albedo; the renderer shades it) with their tags."""
         face = self.table_faces[0]
-        # whole texels, an even count: a border then brings each tile to a multiple of the mip step
-        cols, rows = (2 * int(np.ceil(x / self.texel / 2)) for x in (face.width, face.height))
+        cols, rows = (_even_texels(x / self.texel) for x in (face.width, face.height))
         v, u = (np.mgrid[:rows, :cols] + 0.5) * self.texel
         tiles = []
         for fi, face in enumerate(self.table_faces, start=len(self.faces)):

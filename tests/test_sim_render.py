@@ -167,3 +167,14 @@ def test_labels_follow_the_majority_of_each_pixel():
     # of 6875 hand pixels, measured 2 gained / 4 lost; with ties given to the lower label (the
     # hand's, against the walls') 146 / 0
     assert gained + lost < 30, (gained, lost)
+
+
+@pytest.mark.parametrize("edge", [1.2, 1.25])
+def test_textures_of_any_cube_size_build_their_mip_levels(edge):
+    """A 1.25 m cube's walls are 625 texels: an odd tile, which the padding to the mip step once
+    looked for forever. Every level halves the one before exactly, so tiles stay aligned."""
+    world = World(edge=edge, tags_per_wall=5, tag_size=0.16, table_tags=True)
+    for atlas in (world.atlas, world.table_atlas):
+        shapes = [level.shape[:2] for level in atlas.levels]
+        assert all(2 * h == H and 2 * w == W for (H, W), (h, w) in zip(shapes, shapes[1:])), shapes
+        assert atlas.stride % 2 ** (len(shapes) - 1) == 0

@@ -11,6 +11,8 @@ from dataset_tools.annotate import AnnotateOptions, annotate
 from manus_capture.bars import Bars
 from manus_core.errors import AnnotateError
 
+from .cluster import cluster_options
+
 
 @click.command("annotate", context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("takes", nargs=-1, required=True, type=click.Path(path_type=Path))
@@ -28,10 +30,7 @@ from manus_core.errors import AnnotateError
               help="onnxruntime provider for detection.")
 @click.option("--bones", type=click.Path(path_type=Path), default=None,
               help="A subject file (subjects/SUBJECT.json) to use for every take instead of estimating.")
-@click.option("--workers", type=click.IntRange(1), default=1, show_default=True,
-              help="Takes processed at once in a local process pool.")
-@click.option("--scheduler", default=None, metavar="ADDR",
-              help="Run the takes on a Dask cluster (tcp://HOST:PORT) instead of locally.")
+@cluster_options("by take")
 @click.option("--sim-noise-px", type=click.FloatRange(0), default=2.0, show_default=True,
               help="Simulated detector: Gaussian noise per axis (px).")
 @click.option("--sim-outliers", type=click.FloatRange(0, 1), default=0.1, show_default=True,

@@ -20,6 +20,8 @@ from manus_capture.bars import Bars
 from manus_core.errors import OutputExists
 from manus_core.take import Take
 
+from .cluster import cluster_options
+
 
 @click.command("detect", context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("take", type=click.Path(path_type=Path))
@@ -37,10 +39,7 @@ from manus_core.take import Take
               help="Frames per network call.")
 @click.option("--min-score", type=click.FloatRange(0, 1), default=0.5, show_default=True,
               help="Palm detector score threshold.")
-@click.option("--workers", type=click.IntRange(1), default=1, show_default=True,
-              help="Processes on this machine; the work is split by camera and frame range.")
-@click.option("--scheduler", default=None, metavar="ADDR",
-              help="Run on a Dask cluster (tcp://HOST:PORT) instead; its workers must see the take.")
+@cluster_options("by camera and frame range")
 @click.option("--frames-per-task", type=click.IntRange(1), default=256, show_default=True,
               help="Frames of one camera per task (rounded to whole chunks).")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")

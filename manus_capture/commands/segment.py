@@ -29,6 +29,8 @@ from manus_core.errors import SegmentationError
 from manus_core.provenance import provenance_attrs
 from manus_core.take import Take
 
+from .cluster import cluster_options
+
 
 @click.command("segment", context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("take", type=click.Path(path_type=Path))
@@ -48,10 +50,7 @@ from manus_core.take import Take
 @click.option("--every", type=click.IntRange(1), default=1, show_default=True, help="Segment every N-th frame group.")
 @click.option("--overlays", type=click.Path(path_type=Path), default=None, help="Write PNG overlays into this folder.")
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path), help="DATASET.h5 to add the masks to.")
-@click.option("--workers", type=click.IntRange(1), default=1, show_default=True,
-              help="Processes on this machine; the frame groups are split into ranges.")
-@click.option("--scheduler", default=None, metavar="ADDR",
-              help="Run on a Dask cluster (tcp://HOST:PORT) instead; its workers must see the takes.")
+@cluster_options("into ranges of frame groups")
 @click.option("--groups-per-task", type=click.IntRange(1), default=GROUPS_PER_TASK, show_default=True,
               help="Frame groups per task.")
 @click.option("--force", is_flag=True, help="Redo the take's masks even when those in DATASET.h5 are current.")

@@ -1,0 +1,97 @@
+"""A full-size take without rendering every frame: the benchmark fixture of issue 23.
+
+    .venv/bin/python benchmarks/fullsize_take.py OUT [--seconds 10] [--cameras 53]
+                                                     [--resolution 1280x720] [--fps 120] [--distinct 4]
+
+The simulated cube records a short grasp take (`--distinct` frames per camera, JPEG with sensor
+noise, each camera on its own clock) through the real recorder. Each camera's take is then made
+`--seconds` long in the same format: its JPEG packets repeated in order, muxed again by the
+recorder's own MkvWriter (Cues and all), its frames.csv rows continued at its own measured frame
+period with its own device-to-host latency, and take.json's counts and times updated. The
+simulator's truth does not hold for the repeated frames, so ground_truth.h5 is left out: this take
+is for measuring speed and memory (53 cameras x 1280x720 x 120 FPS x 10 s = 63,600 frames, about
+10 GB), not accuracy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from manus_core.fileio import write_atomic  # noqa: E402
+from manus_core.frames_csv import HEADER, format_row  # noqa: E402
+from manus_core.take import Take  # noqa: E402
+from rig.layouts import make_rig  # noqa: E402
+from rig.mkv import MkvWriter  # noqa: E402
+from rig.record import record_take  # noqa: E402
+
+
+def extend(take_dir: Path, seconds: float) -> int:
+    """Make a recorded take `seconds` long by repeating each camera's packets; returns its frames."""
+    take = Take(take_dir)
+    frames = take.frames
+    meta = json.loads((take_dir / "take.json").read_text())
+    rows, total = [HEADER + "\n"], 0
+    for entry in meta["cameras"]:
+        cam = entry["id"]
+        mine = frames["cam"] == cam
+        seq, device, host = frames["seq"][mine], frames["t_device_ns"][mine], frames["t_host_ns"][mine]
+        period = float(np.median(np.diff(device))) if len(device) > 1 else 1e9 / meta["fps"]
+        n = int(round(seconds * 1e9 / period))
+        packets = list(take.packets(cam))
+        path = take.video_file(cam)
+        tmp = path.with_suffix(".extending.mkv")
+        writer = MkvWriter(tmp, entry["width"], entry["height"], entry["fps"], name=cam, fsync=False)
+        sizes = np.array([len(p) for p in packets])
+        for start in range(0, n, 256):   # a batch per system call, as the recorder's writers do
+            writer.write([packets[k % len(packets)].tobytes() for k in range(start, min(start + 256, n))])
+        writer.close()
+        tmp.replace(path)
+        k = np.arange(n)
+        t_device = device[0] + np.rint(k * period).astype(np.int64)
+        latency = int(np.median(host - device))
+        rows += [format_row(cam, int(seq[0]) + i, int(t_device[i]), int(t_device[i]) + latency,
+                            int(sizes[i % len(sizes)]), 0) for i in range(n)]
+        entry.update(frames=n, bytes=int(sizes[k % len(sizes)].sum()), last_seq=int(seq[0]) + n - 1)
+        total += n
+    (take_dir / "ground_truth.h5").unlink(missing_ok=True)
+    write_atomic(take_dir / "frames.csv", "".join(rows).encode())
+    meta["stop_ns"] = int(meta["start_ns"] + seconds * 1e9)
+    meta["frames"] = total
+    write_atomic(take_dir / "take.json", json.dumps(meta, indent=1).encode())
+    return total
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("out", type=Path, help="session folder to create (the take is OUT/grasp)")
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--cameras", type=int, default=53)
+    parser.add_argument("--resolution", default="1280x720")
+    parser.add_argument("--fps", type=float, default=120.0)
+    parser.add_argument("--distinct", type=int, default=4, help="rendered frames per camera")
+    args = parser.parse_args()
+    size = tuple(int(v) for v in args.resolution.lower().split("x"))
+    config = make_rig("cube53", cameras=args.cameras, resolution=size, fps=args.fps, seed=0)
+    config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, supersample=1))
+    t = time.perf_counter()
+    result = record_take(config, args.out, "grasp", "grasp", args.distinct / args.fps)
+    print(f"rendered and recorded {result.frames} frames in {time.perf_counter() - t:.0f} s")
+    t = time.perf_counter()
+    frames = extend(args.out / "grasp", args.seconds)
+    gb = sum(p.stat().st_size for p in (args.out / "grasp" / "cams").glob("*.mkv")) / 1e9
+    print(f"{args.out / 'grasp'}: {len(config.cameras)} cameras x {size[0]}x{size[1]} x {args.fps:g} FPS x "
+          f"{args.seconds:g} s = {frames} frames, {gb:.2f} GB, extended in {time.perf_counter() - t:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

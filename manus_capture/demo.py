@@ -145,17 +145,17 @@ class Demo:
         return {"drops_found": found, "drops_true": true_drops, "spread_p95_ms": max(spreads, default=float("nan"))}
 
     def calibrate(self) -> dict:
-        truth = truth_cameras(self.take["calibration"])
         if self.config.true_calibration:
             self.calib.mkdir(parents=True, exist_ok=True)
-            truth.save(self.calib / "cameras.json")
+            truth_cameras(self.take["calibration"]).save(self.calib / "cameras.json")
             return {"source": "simulator (--true-calibration)"}
 
         # nothing but the take and the session's tags.json, as `manus-capture calibrate rig TAKE`:
         # every camera's intrinsics and pose from the tags it sees
         result = calibrate_rig(take=self.take["calibration"], tags=self.session / "tags.json", method="tags",
                                output=self.calib, force=True)
-        err = camera_errors(load_cameras(self.calib / "cameras.json"), truth)
+        # scoring only: the calibration above never saw the simulator's cameras
+        err = camera_errors(load_cameras(self.calib / "cameras.json"), truth_cameras(self.take["calibration"]))
         return {"fx_err_pct_median": float(np.median(err["fx_pct"])), "fx_err_pct_max": float(err["fx_pct"].max()),
                 "pp_err_px_max": float(err["pp_px"].max()),
                 "centre_err_mm_median": float(np.median(err["centre_mm"])),

@@ -19,7 +19,7 @@ a hand. Without it, MediaPipe's palm detector finds the hand in every frame.
 from __future__ import annotations
 
 import io
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
@@ -90,15 +90,18 @@ def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | N
     """
     cameras = list(cameras or take.cameras)
     total = sum(take.frame_count(cam) for cam in cameras)
-    done = 0
-    progress("detect", done, total)
+    done = [0]
+
+    def batch_done(n: int) -> None:
+        done[0] += n
+        progress("detect", done[0], total)
+
+    progress("detect", 0, total)
     result = {}
     for cam in cameras:
         kp, used = _empty(take.frame_count(cam))
-        for n in _detect_frames(detector, take.iter_frames(cam), None if boxes is None else boxes[cam], chunk,
-                                min_score, kp, used):
-            done += n
-            progress("detect", done, total)
+        _detect_frames(detector, take.iter_frames(cam), None if boxes is None else boxes[cam], chunk, min_score,
+                       kp, used, batch_done)
         result[cam] = _camera_keypoints(kp, used)
     return result
 
@@ -130,9 +133,7 @@ def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
         _DETECTORS[task.model, task.device] = hand_keypoint_detector(task.model, device=task.device)
     kp, used = _empty(task.stop - task.start)
     frames = ((k - task.start, image) for k, image in Take(task.take).iter_frames(task.camera, task.start, task.stop))
-    for _ in _detect_frames(_DETECTORS[task.model, task.device], frames, task.boxes, task.chunk, task.min_score,
-                            kp, used):
-        continue   # the batches' counts are for detect_take's progress
+    _detect_frames(_DETECTORS[task.model, task.device], frames, task.boxes, task.chunk, task.min_score, kp, used)
     return kp, used
 
 
@@ -183,12 +184,12 @@ def _camera_keypoints(kp: np.ndarray, used: np.ndarray) -> CameraKeypoints:
 
 
 def _detect_frames(detector: Detector, frames, boxes: np.ndarray | None, chunk: int, min_score: float,
-                   kp: np.ndarray, used: np.ndarray):
-    """Detect `chunk` frames ((index, image) pairs) at a time into kp and used; yields the count of
-    each batch done."""
+                   kp: np.ndarray, used: np.ndarray, done: Callable[[int], None] = lambda n: None) -> None:
+    """Detect `chunk` frames ((index, image) pairs) at a time into kp and used; done(frames) after
+    each batch."""
     while batch := list(islice(frames, chunk)):
         _detect_batch(detector, batch, boxes, min_score, kp, used)
-        yield len(batch)
+        done(len(batch))
 
 
 def _detect_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], boxes: np.ndarray | None,

@@ -104,7 +104,7 @@ def _task_key(task: SegmentTask) -> str:
 
 
 def segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_index: np.ndarray,
-                   shape: tuple[int, int], progress: Progress = silent) -> tuple[np.ndarray, np.ndarray]:
+                   shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Hand and object masks (T,C,H,W) of the frame groups frame_index (T,C), cameras of `rig`."""
     h, w = shape
     object_take = take.meta.get("kind") == "object"
@@ -128,7 +128,6 @@ def segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_i
         bgs = [b if p else None for b, p in zip(backgrounds, present)]
         found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
         hand[t], obj[t] = (found_object, found_hand) if object_take else (found_hand, found_object)
-        progress("segment", t + 1, len(frame_index))
     return hand, obj
 
 

@@ -46,8 +46,10 @@ def _undistortion_map(rig: CameraRig, cam: int) -> np.ndarray:
     return xy.reshape(height + 2, width + 2, 2).astype(np.float32)
 
 
-# Newton runs in blocks of points whose temporaries stay in the CPU cache: on whole arrays of a
-# 1280x720 camera's rays a step took 0.6 s
+# The same Newton step as dataset_tools/undistort.py, written apart on purpose: the simulator must
+# not share the pipeline's camera model, so that a convention error there shows instead of
+# cancelling out. Newton runs in blocks of points whose temporaries stay in the CPU cache: on whole
+# arrays of a 1280x720 camera's rays a step took 0.6 s
 _NEWTON_BLOCK = 1 << 14
 _NEWTON_DONE = 1e-8   # a step this small (normalized units) leaves an error of about its square
 

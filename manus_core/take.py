@@ -6,7 +6,8 @@
                         (an imported take may name other MJPEG files in take.json's "videos")
 
 A camera's *frame index* k is its k-th row in frames.csv and its k-th packet in CAM.mkv. Frames are
-read as raw JPEG packets (no decoding while skipping) and decoded with OpenCV only when asked for.
+read as raw JPEG packets (no decoding while skipping; a Matroska video is entered at the frame asked
+for through its Cues, manus_core.matroska) and decoded with OpenCV only when asked for.
 Every error names the file and what is wrong (TakeError, exit code 2 in the CLI).
 """
 
@@ -15,7 +16,8 @@ from __future__ import annotations
 import json
 import os
 import socket
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from itertools import islice
 from pathlib import Path
 
 import cv2
@@ -24,7 +26,10 @@ import numpy as np
 from manus_core.errors import TakeError
 from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
 from manus_core.frames_csv import read_frames_csv
+from manus_core.matroska import MatroskaVideo, VideoFrames, count_frames
 
+MATROSKA_SUFFIXES = (".mkv", ".mka", ".webm")
+SEEK_GAP = 240   # frames: beyond two of the recorder's clusters, entering through the Cues is cheaper
 BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
 
 
@@ -81,6 +86,7 @@ class Take:
         except KeyError:
             raise TakeError(f"{meta_path}: cameras: an entry has no 'id'") from None
         self._frames: dict[str, np.ndarray] | None = None
+        self._readable: dict[str, int] = {}
 
     @property
     def recorder_running(self) -> bool:
@@ -126,9 +132,47 @@ class Take:
             raise TakeError(f"{path}: missing (camera {cam} of take.json has no video)")
         return path
 
-    def packets(self, cam: str) -> Iterator[np.ndarray]:
-        """The JPEG packets of a camera's video, in order, undecoded (1-D uint8 arrays)."""
-        return video_packets(self.video_path(cam))
+    def video_frames(self, cam: str) -> VideoFrames:
+        """The complete frames of a camera's video and why there may be fewer than were written,
+        counted without decoding (a Matroska video from its element headers alone)."""
+        path = self.video_file(cam)
+        if not path.is_file():
+            return VideoFrames(0, "missing")
+        if path.suffix in MATROSKA_SUFFIXES:
+            return count_frames(path)
+        try:
+            return VideoFrames(sum(1 for _ in video_packets(path)), None)
+        except TakeError as exc:
+            return VideoFrames(0, str(exc))
+
+    def readable_frames(self, cam: str) -> int:
+        """How many of a camera's frames.csv rows have an image: all of them unless its video was
+        cut short (a crash mid-take), whose missing frames every stage treats as not captured."""
+        if cam not in self._readable:
+            self._readable[cam] = min(self.frame_count(cam), self.video_frames(cam).frames)
+        return self._readable[cam]
+
+    def missing_frames(self) -> dict[str, tuple[int, int]]:
+        """{camera: (frames with an image, frames.csv rows)} of the cameras whose video is shorter
+        than frames.csv says."""
+        counts = {cam: (self.readable_frames(cam), self.frame_count(cam)) for cam in self.cameras}
+        return {cam: c for cam, c in counts.items() if c[0] < c[1]}
+
+    def missing_notes(self, cameras: Sequence[str] | None = None) -> list[str]:
+        """One line per camera (of `cameras`, default all) whose video is cut short: what every
+        stage says before it goes on with the frames that exist."""
+        missing = self.missing_frames()
+        return [f"camera {cam}: {self.video_file(cam).name} holds {have} of its {rows} frames.csv rows (cut short: "
+                f"a crash mid-take?): frames {have}-{rows - 1} have no image and are left out"
+                for cam, (have, rows) in missing.items() if cameras is None or cam in cameras]
+
+    def packets(self, cam: str, start: int = 0) -> Iterator[np.ndarray]:
+        """The JPEG packets of a camera's video from frame index `start` on, in order, undecoded
+        (1-D uint8 arrays). A Matroska video is entered through its Cues, near `start`."""
+        path = self.video_path(cam)
+        if path.suffix not in MATROSKA_SUFFIXES:
+            return islice(video_packets(path), start, None)
+        return _matroska_packets(path, start)
 
     def iter_frames(self, cam: str, start: int = 0, stop: int | None = None,
                     step: int = 1) -> Iterator[tuple[int, np.ndarray]]:
@@ -139,11 +183,11 @@ class Take:
         """
         expected = self.frame_count(cam) if stop is None else stop
         path = self.video_path(cam)
-        k = -1
-        for k, packet in enumerate(self.packets(cam)):
+        k = start - 1
+        for k, packet in enumerate(self.packets(cam, start), start):
             if k >= expected:
                 return
-            if k >= start and (k - start) % step == 0:
+            if (k - start) % step == 0:
                 yield k, _decode(packet, path, k)
         if k + 1 < expected:
             raise TakeError(f"{path}: has {k + 1} frames, frames.csv (or the request) needs {expected}")
@@ -162,25 +206,36 @@ class Take:
         return dict(self.stream_frames(cam, indices))
 
     def stream_frames(self, cam: str, indices) -> Iterator[tuple[int, np.ndarray]]:
-        """(k, image) for the distinct frame indices asked for (-1 ignored), in increasing order,
-        in one pass over the video that stops after the last: only those are decoded, and only one
-        is held at a time. A video without one of them raises TakeError naming the file."""
+        """(k, image) for the distinct frame indices asked for (-1 ignored), in increasing order:
+        only those are decoded, and only one is held at a time. The video is read forward and
+        entered again through its Cues across a gap of more than SEEK_GAP frames. A video without
+        one of them raises TakeError naming the file."""
         wanted = np.unique([int(k) for k in indices if k >= 0])
-        if not len(wanted):
-            return
         path, i = self.video_path(cam), 0
-        for k, packet in enumerate(self.packets(cam)):
-            if k == wanted[i]:
-                yield k, _decode(packet, path, k)
-                i += 1
-                if i == len(wanted):
-                    return
-        raise TakeError(f"{path}: has no frame {wanted[i]}")
+        while i < len(wanted):
+            start = int(wanted[i])
+            for k, packet in enumerate(self.packets(cam, start), start):
+                if k == wanted[i]:
+                    yield k, _decode(packet, path, k)
+                    i += 1
+                    if i == len(wanted) or wanted[i] - k > SEEK_GAP:
+                        break
+            else:
+                raise TakeError(f"{path}: has no frame {wanted[i]}")
 
     def _check_camera(self, cam: str) -> None:
         if cam not in self.cameras:
             raise TakeError(f"{self.path / 'take.json'}: no camera {cam!r} "
                             f"(cameras: {', '.join(self.cameras)})")
+
+
+def _matroska_packets(path: Path, start: int) -> Iterator[np.ndarray]:
+    try:
+        video = MatroskaVideo(path)
+    except ValueError as exc:
+        raise TakeError(f"{path}: {exc}") from None
+    with video:
+        yield from video.packets(start)
 
 
 def video_packets(path: Path) -> Iterator[np.ndarray]:

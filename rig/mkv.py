@@ -15,30 +15,23 @@ a file that ffmpeg and OpenCV read up to the last complete block. close() then m
 tidy: it sets the cluster and segment sizes, writes Cues (random access by frame index) and a
 SeekHead into space reserved at the start, and the duration into the Info element.
 
-Reading back: `count_frames` counts a file's frames from its element headers alone (what
-sync-report checks each video with), and says where a cut or damaged file stops making sense.
+Reading back is manus_core.matroska's: frame counts from the element headers, and packets from
+any frame on through these Cues.
 """
 
 from __future__ import annotations
 
 import errno
-import mmap
 import os
 import struct
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
 
-# Element ids (Matroska specification, RFC 9559)
-EBML = 0x1A45DFA3
-SEGMENT = 0x18538067
-SEEK_HEAD, SEEK, SEEK_ID, SEEK_POSITION = 0x114D9B74, 0x4DBB, 0x53AB, 0x53AC
-INFO, TIMESTAMP_SCALE, DURATION, MUXING_APP, WRITING_APP = 0x1549A966, 0x2AD7B1, 0x4489, 0x4D80, 0x5741
-TRACKS, TRACK_ENTRY = 0x1654AE6B, 0xAE
-CLUSTER, TIMESTAMP, SIMPLE_BLOCK, BLOCK_GROUP = 0x1F43B675, 0xE7, 0xA3, 0xA0
-CUES, CUE_POINT, CUE_TIME, CUE_TRACK_POSITIONS, CUE_TRACK, CUE_CLUSTER_POSITION = (
-    0x1C53BB6B, 0xBB, 0xB3, 0xB7, 0xF7, 0xF1)
-VOID = 0xEC
+from manus_core.matroska import (
+    CLUSTER, CUE_CLUSTER_POSITION, CUE_POINT, CUE_TIME, CUE_TRACK, CUE_TRACK_POSITIONS, CUES, DURATION, EBML, INFO,
+    MUXING_APP, SEEK, SEEK_HEAD, SEEK_ID, SEEK_POSITION, SEGMENT, SIMPLE_BLOCK, TIMESTAMP, TIMESTAMP_SCALE, TRACK_ENTRY,
+    TRACKS, VOID, WRITING_APP,
+)
 
 UNKNOWN_SIZE = b"\x01\xff\xff\xff\xff\xff\xff\xff"  # 8-byte vint with every value bit set
 SEEK_HEAD_SPACE = 96      # reserved for a SeekHead of three entries (68 bytes) plus a Void
@@ -261,84 +254,3 @@ class MkvWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-# -- reading ------------------------------------------------------------------------------------
-class VideoFrames(NamedTuple):
-    """What `count_frames` found: the complete frames, and why there may be fewer than were
-    written (None when the file ends where its last element does)."""
-
-    frames: int
-    problem: str | None
-
-
-def _element(buf: mmap.mmap, pos: int, size: int) -> tuple[int, int | None, int] | None:
-    """(id, payload size or None when unknown, payload start) of the element at `pos` (< size);
-    None when its header runs past the end of the file. ValueError where no element can start."""
-    id_len = 9 - buf[pos].bit_length()          # leading zero bits + 1
-    if id_len > 4:
-        raise ValueError(pos)
-    if pos + id_len >= size:
-        return None
-    size_len = 9 - buf[pos + id_len].bit_length()
-    if size_len > 8:
-        raise ValueError(pos)
-    data = pos + id_len + size_len
-    if data > size:
-        return None
-    value = int.from_bytes(buf[pos + id_len:data], "big") & ((1 << (7 * size_len)) - 1)
-    length = None if value == (1 << (7 * size_len)) - 1 else value
-    return int.from_bytes(buf[pos:pos + id_len], "big"), length, data
-
-
-def count_frames(path: str | Path) -> VideoFrames:
-    """The frames (blocks) of a Matroska file, counted from its element headers alone: no frame is
-    read, let alone decoded, so a take of many gigabytes is counted in a second or two.
-
-    The count stops where the file stops making sense, and `problem` says why: an empty file, no
-    Matroska header, a last frame cut short (a killed writer, a truncated copy), bytes that are
-    no element. One video track per file, no lacing: what MkvWriter and ffmpeg's MJPEG copy write."""
-    try:
-        with open(path, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            if size == 0:
-                return VideoFrames(0, "empty (0 bytes)")
-            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-                return _count_blocks(buf, size)
-    except OSError as exc:
-        return VideoFrames(0, f"cannot be read ({exc.strerror or exc})")
-
-
-def _count_blocks(buf: mmap.mmap, size: int) -> VideoFrames:
-    try:
-        head = _element(buf, 0, size)
-    except ValueError:
-        head = None
-    if head is None or head[0] != EBML:
-        return VideoFrames(0, "not a Matroska file (no EBML header)")
-    frames, pos, segment_end = 0, 0, None
-    while pos < size:
-        try:
-            found = _element(buf, pos, size)
-        except ValueError:
-            return VideoFrames(frames, f"no Matroska element at byte {pos}, after frame {frames}")
-        if found is None:
-            return VideoFrames(frames, f"cut short: ends inside an element header at byte {pos}")
-        eid, length, data = found
-        if eid in (SEGMENT, CLUSTER):
-            # containers: their children are walked, whether their size is known or not (live)
-            if eid == SEGMENT and length is not None:
-                segment_end = data + length
-            pos = data
-            continue
-        if length is None:
-            return VideoFrames(frames, f"element {eid:#x} of unknown size at byte {pos}")
-        block = eid in (SIMPLE_BLOCK, BLOCK_GROUP)
-        if data + length > size:
-            inside = f"frame {frames + 1}" if block else f"the element at byte {pos} ({eid:#x})"
-            return VideoFrames(frames, f"cut short: ends inside {inside}")
-        frames += block
-        pos = data + length
-    if segment_end is not None and segment_end > size:
-        return VideoFrames(frames, f"cut short: {segment_end - size} bytes fewer than its header says")
-    return VideoFrames(frames, None)

@@ -109,7 +109,7 @@ def test_errors_name_the_file(take, tmp_path: Path) -> None:
     with pytest.raises(TakeError, match=r"cams/cam01\.mkv: missing"):
         Take(path).read_frame("cam01", 0)
     (path / "cams" / "cam01.mkv").write_bytes(b"\x1aE\xdf\xa3 this is not a video" * 10)
-    with pytest.raises(TakeError, match=r"cam01\.mkv: cannot be opened"):
+    with pytest.raises(TakeError, match=r"cam01\.mkv: not a Matroska file"):
         Take(path).read_frame("cam01", 0)
 
     # A video with fewer frames than frames.csv says (an interrupted write).

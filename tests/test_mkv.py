@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
+from manus_core.matroska import MatroskaVideo, count_frames
 from rig.mkv import MkvWriter
 
 
@@ -69,3 +70,61 @@ def _packets(path: Path) -> list[bytes]:
         if not ok:
             return out
         out.append(p.reshape(-1).tobytes())
+
+
+def _write(path: Path, frames: list[bytes], cluster_frames: int, close: bool = True) -> None:
+    w = MkvWriter(path, 48, 32, 120.0, cluster_frames=cluster_frames, fsync=False)
+    for f in frames:
+        w.write(f)
+    if close:
+        w.close()
+    else:   # a recorder killed here: no sizes, no Cues
+        os.close(w._fd)
+        w._fd = None
+
+
+@pytest.fixture(scope="module")
+def jpegs() -> list[bytes]:
+    # each of its own grey and quality (so its own size): a packet off by one shows
+    return [cv2.imencode(".jpg", np.full((32, 48, 3), (5 * k) % 256, np.uint8),
+                         [cv2.IMWRITE_JPEG_QUALITY, 50 + k % 40])[1].tobytes() for k in range(300)]
+
+
+def test_reader_gives_the_reference_demuxers_packets_from_any_frame_through_the_cues(tmp_path, jpegs, monkeypatch):
+    path = tmp_path / "a.mkv"
+    _write(path, jpegs, cluster_frames=20)
+    assert [p.tobytes() for p in MatroskaVideo(path).packets()] == _packets(path) == jpegs
+    assert count_frames(path) == (300, None)
+    reads = []
+    real = MatroskaVideo._header
+
+    def counted(self, pos):
+        reads.append(pos)
+        return real(self, pos)
+
+    monkeypatch.setattr(MatroskaVideo, "_header", counted)
+    with MatroskaVideo(path) as video:
+        assert [c[0] for c in video.cues] == list(range(0, 300, 20))
+        opened = len(reads)
+        first = next(video.packets(277))
+        # the Cues lead to frame 260's cluster: its header, the Timestamp and 18 blocks, not 277 blocks
+        assert len(reads) - opened <= 22
+    assert first.tobytes() == jpegs[277]
+
+
+def test_reader_walks_a_killed_recorders_file_without_cues_up_to_its_last_whole_frame(tmp_path, jpegs):
+    path = tmp_path / "killed.mkv"
+    _write(path, jpegs[:100], cluster_frames=16, close=False)
+    os.truncate(path, os.path.getsize(path) - 100)          # killed in the middle of frame 100
+    with MatroskaVideo(path) as video:
+        assert video.cues == []
+        assert [p.tobytes() for p in video.packets(90)] == jpegs[90:99]
+    assert count_frames(path) == (99, "cut short: ends inside frame 100")
+
+
+def test_reader_names_what_is_not_a_matroska_file(tmp_path):
+    (tmp_path / "empty.mkv").write_bytes(b"")
+    (tmp_path / "text.mkv").write_bytes(b"not a video at all")
+    assert count_frames(tmp_path / "empty.mkv") == (0, "empty (0 bytes)")
+    assert count_frames(tmp_path / "text.mkv") == (0, "not a Matroska file (no EBML header)")
+    assert count_frames(tmp_path / "absent.mkv")[1].startswith("cannot be read (No such file")

@@ -193,11 +193,11 @@ def test_segmenting_a_take_reads_each_video_once(tmp_path, monkeypatch):
     """Segmentation reads every camera's video in one sequential pass: a take twice as long reads
     twice the packets, each camera's packets once (reading each frame from the video's start, as it
     once did, read 942 and 3672 packets for 30 and 60 frame groups, the background take's included: 3.9x)."""
-    import manus_core.take as take_module
     from test_keypoints_take import make_take
 
     from dataset_tools.segmentation.takes import segment_take
     from manus_core.cameras import CameraRig
+    from manus_core.matroska import MatroskaVideo
 
     rng = np.random.default_rng(0)
     scene = cv2.GaussianBlur(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8), (0, 0), 2)
@@ -207,14 +207,15 @@ def test_segmenting_a_take_reads_each_video_once(tmp_path, monkeypatch):
     rig = CameraRig(("a", "b"), np.tile([[60.0, 0, 31.5], [0, 60, 23.5], [0, 0, 1]], (2, 1, 1)), np.zeros((2, 5)),
                     np.tile(np.eye(3), (2, 1, 1)), [[0, 0, 0], [0.2, 0, 0]], [[64, 48]] * 2)
     read = {}
-    original = take_module.video_packets
+    original = MatroskaVideo.packets
 
-    def counting(path):
-        for packet in original(path):
-            read[path.parent.parent.name] = read.get(path.parent.parent.name, 0) + 1   # per take
+    def counting(video, start=0):
+        for packet in original(video, start):
+            name = video.path.parent.parent.name   # per take
+            read[name] = read.get(name, 0) + 1
             yield packet
 
-    monkeypatch.setattr(take_module, "video_packets", counting)
+    monkeypatch.setattr(MatroskaVideo, "packets", counting)
     packets = {}
     for n in (30, 60):
         read.clear()

@@ -22,7 +22,8 @@ from dataset_tools.sync import analyze_sync, build_report
 from manus_capture.cli import cli
 from manus_core.ground_truth import GroundTruth
 from manus_core.take import Take, recorder_identity
-from rig.mkv import MkvWriter, count_frames
+from manus_core.matroska import count_frames
+from rig.mkv import MkvWriter
 from rig.sim.cube import SimulatedCube
 
 pytestmark = pytest.mark.faults

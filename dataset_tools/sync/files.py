@@ -1,20 +1,17 @@
 """What a take's files say besides the frame times (docs/sync.md, "The take's files"): take.json's
 status, each camera's video against its frames.csv rows and take.json's count, and rows of
-cameras take.json does not list. Videos are counted from their Matroska element headers
-(rig.mkv.count_frames), an imported AVI from its packets: no frame is decoded."""
+cameras take.json does not list. Videos are counted by Take.video_frames: from their
+Matroska element headers, an imported AVI from its packets; no frame is decoded."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from manus_core.errors import TakeError
 from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
 from manus_core.take import Take
-from rig.mkv import count_frames
 
 KILLED_STATUS = "recording"   # take.json keeps it from the start until the recorder finishes
 
@@ -45,17 +42,6 @@ def lost_cameras(meta: Mapping) -> set[str]:
     return {cam for cam, c in camera_entries(meta).items() if c.get("status", "ok") != "ok"}
 
 
-def _count(take: Take, cam: str, path: Path) -> tuple[int, str | None]:
-    """A video's complete frames and why there may be fewer; a video that is not Matroska (an
-    imported release's AVI) is counted by reading its packets, still without decoding."""
-    if path.suffix == ".mkv":
-        return count_frames(path)
-    try:
-        return sum(1 for _ in take.packets(cam)), None
-    except TakeError as exc:
-        return 0, str(exc)
-
-
 def _video(take: Take, cam: str, rows: int, files: TakeFiles, recovered: bool) -> None:
     path = take.video_file(cam)
     name = path.relative_to(take.path).as_posix() if path.is_relative_to(take.path) else str(path)
@@ -64,7 +50,7 @@ def _video(take: Take, cam: str, rows: int, files: TakeFiles, recovered: bool) -
         entry.update(video_frames=None, video_problem="missing")
         files.reasons.append(f"{cam}: {name} missing ({rows} frames.csv rows have no image)")
         return
-    frames, problem = _count(take, cam, path)
+    frames, problem = take.video_frames(cam)
     entry.update(video_frames=frames, video_problem=problem)
     why = f" ({problem})" if problem else ""
     if frames < rows:

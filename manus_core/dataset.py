@@ -410,7 +410,7 @@ def _keep_other_stages(old, group) -> None:
             group.attrs[name] = value
 
 
-def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray], attrs: dict | None = None,
+def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray | h5py.Dataset], attrs: dict | None = None,
                stage: str | None = None) -> None:
     """Add (or replace) arrays of take `key` in DATASET.h5, gzip-compressed, atomically: a copy of
     the file is changed and renamed over it. Later stages (segment, contacts) add to the takes
@@ -427,9 +427,12 @@ def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray], attrs:
                                f"(its part: {', '.join(STAGE_ARRAYS[stage])})")
     # The arrays are compressed in memory first and then copied: HDF5 can crash the process when
     # the disk fills up while it writes a compressed dataset, whereas a failed copy is an error.
+    # An array that is already an HDF5 dataset (masks too large for memory) is copied from its file.
     staged = io.BytesIO()
     with h5py.File(staged, "w") as src:
         for name, data in arrays.items():
+            if isinstance(data, h5py.Dataset):
+                continue
             data = np.asarray(data)
             chunks = (1,) + data.shape[1:] if data.ndim >= 3 else None
             src.create_dataset(name, data=data, compression="gzip", compression_opts=4, chunks=chunks)
@@ -448,6 +451,8 @@ def add_arrays(path: str | Path, key: str, arrays: dict[str, np.ndarray], attrs:
                 if name in group:
                     del group[name]
                 parent, _, leaf = name.rpartition("/")
-                src.copy(src[name], group.require_group(parent) if parent else group, name=leaf)
+                data = arrays[name]
+                src.copy(data if isinstance(data, h5py.Dataset) else src[name],
+                         group.require_group(parent) if parent else group, name=leaf)
             for k, v in (attrs or {}).items():
                 group.attrs[k] = v

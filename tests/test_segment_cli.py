@@ -84,6 +84,8 @@ def test_segment_grasp_take_into_dataset(grasp_session):
         hand, obj = group["masks/hand"][()], group["masks/object"][()]
         frame_ns = group["masks/frame_ns"][()]
         assert group["masks/hand"].compression == "gzip"
+    # the masks were written to a file beside the dataset as they came, then copied in and removed
+    assert not list(out.parent.glob(".*.masks.h5"))
     assert f"segment: {len(frame_ns)} groups x 5 cameras" in result.output
     keep, truth = _truth(session, "grasp", frame_ns)
     assert len(keep) == 2   # the groups of ticks 0 and 3, found again through masks/frame_ns

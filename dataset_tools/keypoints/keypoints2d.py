@@ -86,10 +86,11 @@ def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | N
     """Keypoints of every frame of the given cameras (default: all), `chunk` frames per network call.
 
     boxes: per camera (F,5) as load_boxes gives; None: the palm detector finds one hand per frame.
-    Reports progress("detect", frames done, frames of all the cameras).
+    Reports progress("detect", frames done, frames of all the cameras). Frames past the end of a
+    video cut short (Take.missing_frames) stay undetected.
     """
     cameras = list(cameras or take.cameras)
-    total = sum(take.frame_count(cam) for cam in cameras)
+    total = sum(take.readable_frames(cam) for cam in cameras)
     done = [0]
 
     def batch_done(n: int) -> None:
@@ -100,7 +101,7 @@ def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | N
     result = {}
     for cam in cameras:
         kp, used = _empty(take.frame_count(cam))
-        _detect_frames(detector, take.iter_frames(cam), None if boxes is None else boxes[cam], chunk, min_score,
+        _detect_frames(detector, take.iter_frames(cam, 0, take.readable_frames(cam)), None if boxes is None else boxes[cam], chunk, min_score,
                        kp, used, batch_done)
         result[cam] = _camera_keypoints(kp, used)
     return result
@@ -141,11 +142,12 @@ def detect_take_tasks(take: Take, model: str, device: str = "auto", boxes: dict[
                       cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
                       frames_per_task: int = 256) -> list[DetectTask]:
     """A take's detection split by camera and frame range: whole chunks per task, so that every
-    network call sees the frames it would in one pass over the camera."""
+    network call sees the frames it would in one pass over the camera. Frames past the end of a
+    video cut short are in no task (they stay undetected)."""
     span = max(1, frames_per_task // chunk) * chunk
     return [DetectTask(str(take.path.resolve()), cam, start, min(start + span, n), model, device, chunk, min_score,
                        None if boxes is None else boxes[cam][start:start + span])
-            for cam in (cameras or take.cameras) for n in (take.frame_count(cam),) for start in range(0, n, span)]
+            for cam in (cameras or take.cameras) for n in (take.readable_frames(cam),) for start in range(0, n, span)]
 
 
 def detect_tasks(take: Take, tasks: list[DetectTask], workers: int = 1, scheduler: str | None = None,

@@ -17,9 +17,11 @@ from manus_core.take import Take
 from ..tasks import run_tasks
 from .background import BackgroundModel
 from .colour import ColourModel
+from .store import MaskStore
 from .views import hand_object_masks
 
 GROUPS_PER_TASK = 64
+TASK_MASK_BYTES = 64 << 20   # a task's result at most: fewer groups a task for many cameras or large images
 
 # (background take, cameras) -> its background models and warnings: fitted once per process, and
 # only the last kept (53 cameras at 1280x720 are ~0.8 GB)
@@ -77,13 +79,13 @@ def segment_range(task: SegmentTask) -> tuple[np.ndarray, np.ndarray]:
 
 
 def segment_in_tasks(take: Take, rig: CameraRig, background: Path, model: ColourModel | None,
-                     frame_index: np.ndarray, shape: tuple[int, int], workers: int = 1, scheduler: str | None = None,
-                     progress: Progress = silent, per_task: int = GROUPS_PER_TASK) -> tuple[np.ndarray, np.ndarray]:
-    """Hand and object masks (T,C,H,W) of the groups frame_index (T,C), `per_task` groups a task,
-    run through run_tasks; the first failed task's error is raised."""
-    T, (h, w) = len(frame_index), shape
-    hand = np.zeros((T, len(rig), h, w), bool)
-    obj = np.zeros_like(hand)
+                     frame_index: np.ndarray, store: MaskStore, workers: int = 1, scheduler: str | None = None,
+                     progress: Progress = silent, per_task: int = GROUPS_PER_TASK) -> None:
+    """Hand and object masks of the groups frame_index (T,C) into `store` (its shape (T,C,H,W)),
+    at most `per_task` groups (and TASK_MASK_BYTES of masks) a task, run through run_tasks; the
+    first failed task's error is raised."""
+    T, shape = len(frame_index), store.hand.shape[2:]
+    per_task = max(1, min(per_task, TASK_MASK_BYTES // (2 * len(rig) * shape[0] * shape[1])))
     tasks = [SegmentTask(str(take.path.resolve()), rig, str(Path(background).resolve()), model,
                          frame_index[start:start + per_task], start, shape)
              for start in range(0, T, per_task)]
@@ -92,11 +94,9 @@ def segment_in_tasks(take: Take, rig: CameraRig, background: Path, model: Colour
     for task, out in run_tasks(segment_range, tasks, workers, scheduler, key=_task_key):
         if isinstance(out, Exception):
             raise out
-        stop = task.start + len(task.frame_index)
-        hand[task.start:stop], obj[task.start:stop] = out
+        store.put(task.start, *out)
         done += len(task.frame_index)
         progress("segment", done, T)
-    return hand, obj
 
 
 def _task_key(task: SegmentTask) -> str:

@@ -6,7 +6,7 @@ import hashlib
 import json
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -25,6 +25,7 @@ from .colour import PaintKey
 from .groups import GROUPS_PER_TASK, backgrounds_for, sample_frames, segment_in_tasks
 from .paint import paint_masks
 from .pngs import load_png_masks
+from .store import MaskStore
 from .views import object_colour, paint_key_from_object
 
 
@@ -35,7 +36,8 @@ class Segmentation:
     frame_ns (T,) and frame_index (T,C) (each camera's frame in each group, -1: none): the take's
     frame groups (every `every`-th); hand and object (T,C,H,W) bool; paint (C,H,W) bool for a
     canonical take with a paint colour, else None, segmented in group paint_group; report:
-    warnings, the frame grouping used and paint statistics.
+    warnings, the frame grouping used and paint statistics. With a `store` on disk, hand and object
+    are its HDF5 datasets (they index like arrays) until close().
     """
 
     cameras: tuple[str, ...]
@@ -46,6 +48,12 @@ class Segmentation:
     paint: np.ndarray | None
     paint_group: int | None
     report: dict
+    store: MaskStore | None = field(default=None, repr=False)
+
+    def close(self) -> None:
+        """Remove the masks' file, when they are in one (segment_take's `masks_file`)."""
+        if self.store is not None:
+            self.store.close()
 
     def in_order(self, ids: list[str] | tuple[str, ...]) -> list[int]:
         """Column of each camera of `ids` (e.g. a calibration's order) in these masks."""
@@ -88,7 +96,8 @@ def take_cameras(take: Take, rig: CameraRig, wanted: Sequence[str] | None = None
 def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, object_path: Path | None = None,
                  swatch=None, every: int = 1, progress: Progress = silent,
                  masks: Path | None = None, cameras: Sequence[str] | None = None, workers: int = 1,
-                 scheduler: str | None = None, groups_per_task: int = GROUPS_PER_TASK) -> Segmentation:
+                 scheduler: str | None = None, groups_per_task: int = GROUPS_PER_TASK,
+                 masks_file: Path | None = None) -> Segmentation:
     """Masks of a take: hand and object in every frame group, and in a canonical take the paint
     (its colour from the object take or `swatch` B,G,R). The groups are those of the take's sync
     report (as annotate's), every `every`-th; the paint is segmented in the middle group of a
@@ -96,7 +105,9 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
     cameras: those to segment (take_cameras; by default the take's calibrated cameras, and a
     warning names those a partial calibration leaves out). The groups' masks are computed in tasks
     of `groups_per_task` groups: inline, in `workers` local processes or on the Dask `scheduler`
-    (dataset_tools.tasks.run_tasks).
+    (dataset_tools.tasks.run_tasks), and written as they come into `masks_file` (an HDF5 file the
+    caller removes with Segmentation.close(); a long take's masks need not fit in memory), or
+    held in memory when it is None.
 
     With `masks`, a folder of masks made by another tool, the hand and object masks are read from
     MASKS/hand/CAM/FRAME.png and MASKS/object/CAM/FRAME.png (FRAME: the camera's frame index, 6
@@ -133,30 +144,40 @@ def segment_take(take_path: Path, rig: CameraRig, background_path: Path | None, 
     report["frame_groups"] = groups.description
     columns = [groups.cameras.index(c) for c in cams]
     frame_ns, frame_index = groups.frame_ns[::every], groups.frame_index[::every][:, columns]
+    # a video cut short (a crash mid-take): its missing frames are views not captured
+    report["warnings"].extend(take.missing_notes(cams))
+    readable = np.array([take.readable_frames(cam) for cam in cams])
+    frame_index = np.where(frame_index < readable, frame_index, -1)
     w, h = (int(v) for v in rig.size[0])
-    if masks is None:
-        hand, obj = segment_in_tasks(take, rig, background_path, model, frame_index, (h, w), workers, scheduler,
-                                     progress, groups_per_task)
-    else:
-        hand = load_png_masks(Path(masks) / "hand", cams, frame_index, (h, w))
-        objects = Path(masks) / "object"
-        obj = load_png_masks(objects, cams, frame_index, (h, w)) if objects.is_dir() else np.zeros_like(hand)
-        progress("segment", len(frame_index), len(frame_index))
-    paint = middle = None
-    if kind == "canonical":
-        if key is None:
-            report["warnings"].append("canonical take without --object-take or --swatch: no paint masks")
+    store = MaskStore((len(frame_index), len(cams), h, w), masks_file)
+    try:
+        if masks is None:
+            segment_in_tasks(take, rig, background_path, model, frame_index, store, workers, scheduler, progress,
+                             groups_per_task)
         else:
+            hand = load_png_masks(Path(masks) / "hand", cams, frame_index, (h, w))
+            objects = Path(masks) / "object"
+            store.put(0, hand, load_png_masks(objects, cams, frame_index, (h, w)) if objects.is_dir()
+                      else np.zeros_like(hand))
+            progress("segment", len(frame_index), len(frame_index))
+        paint = middle = None
+        if kind == "canonical" and key is None:
+            report["warnings"].append("canonical take without --object-take or --swatch: no paint masks")
+        elif kind == "canonical":
             middle = len(frame_ns) // 2
             images = np.stack([take.read_frame(cam, int(max(frame_index[middle, c], 0)))
                                for c, cam in enumerate(cams)])
             lit = [None if b is None else b.at_brightness(image) for b, image in zip(backgrounds, images)]
-            paint, paint_report = paint_masks(images, hand[middle], key, backgrounds=lit)
+            paint, paint_report = paint_masks(images, store.hand[middle], key, backgrounds=lit)
             report["paint"] = paint_report
             report["warnings"].extend(paint_report["warnings"])
+    except BaseException:
+        store.close()
+        raise
     for message in report["warnings"]:
         warnings.warn(message, stacklevel=2)
-    return Segmentation(tuple(cams), frame_ns, frame_index, hand, obj, paint, middle, report)
+    return Segmentation(tuple(cams), frame_ns, frame_index, store.hand, store.object, paint, middle, report,
+                        store if masks_file is not None else None)
 
 
 def segment_inputs(take: Take, rig: CameraRig, cameras: Sequence[str], background: Path | None,

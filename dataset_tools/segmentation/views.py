@@ -15,6 +15,10 @@ from .colour import ColourModel, PaintKey
 from .edges import refine_edges
 from .multiview import consistent_masks
 
+# edges.refine_edges' band (2) and its 5x5 dilation, the 3x3 windows of its pure colours, and a
+# background border several pixels wide so that no image edge is mistaken for a mask's
+EDGE_MARGIN = 12
+
 
 def foreground_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None], min_area: int = 8) -> np.ndarray:
     """Foreground (C,H,W) of views (C,H,W,3); a view without a background gets an empty mask."""
@@ -86,10 +90,22 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     obj = np.zeros_like(fg)
     hand = fg.copy()
     for c, image in enumerate(images):
-        if not fg[c].any():
+        window = _around(fg[c], EDGE_MARGIN)
+        if window is None:
             continue
-        labels = fg[c].astype(np.uint8)
-        labels[remove_small(is_object[c] & fg[c], min_area)] = 2
-        labels = refine_edges(image, labels, backgrounds[c].at_brightness(image), (1, 2), band=2)
-        hand[c], obj[c] = labels == 1, labels == 2
+        # the edges are re-decided in a window around the foreground (a hand is a small part of a
+        # 1280x720 view): every pixel the unmixing looks at is in it, so the labels are the same
+        labels = fg[c][window].astype(np.uint8)
+        labels[remove_small(is_object[c][window] & fg[c][window], min_area)] = 2
+        labels = refine_edges(image[window], labels, backgrounds[c].at_brightness(image, window), (1, 2), band=2)
+        hand[c][window], obj[c][window] = labels == 1, labels == 2
     return hand, obj, report
+
+
+def _around(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """(rows, columns) of the mask's bounding box grown by `margin` px; None for an empty mask."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return None
+    return (slice(max(rows[0] - margin, 0), rows[-1] + margin + 1),
+            slice(max(cols[0] - margin, 0), cols[-1] + margin + 1))

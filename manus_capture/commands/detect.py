@@ -58,9 +58,11 @@ def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str |
     cams = tuple(c.strip() for c in cameras.split(",")) if cameras else tk.cameras
     for cam in cams:
         tk.video_path(cam)  # every requested camera's video must exist before hours of work start
+    for note in tk.missing_notes(cams):
+        click.echo(f"warning: {note}", err=True)
     boxes = load_boxes(boxes_path, tk, cams) if boxes_path else None
     detector = hand_keypoint_detector(model_name, device=device)   # here too: a missing model stops us now
-    total = sum(tk.frame_count(c) for c in cams)
+    total = sum(tk.readable_frames(c) for c in cams)
     start = time.perf_counter()
     model = str(Path(model_name).resolve()) if model_name.endswith(".toml") else model_name  # for other processes
     tasks = detect_take_tasks(tk, model, device, boxes, cams, chunk, min_score, frames_per_task)

@@ -81,19 +81,24 @@ def command(take: Path, calib: Path, background: Path | None, masks: Path | None
     if stale == [] and not force:
         click.echo(f"kept (same inputs): the masks of {key} in {output} (--force redoes them)")
         return
+    # the masks go to a file beside DATASET.h5 as they are made: a long take's are larger than memory
     with Bars(unit="group") as bars:
         result = segment_take(take, rig, background, object_take, colour, every, progress=bars, masks=masks,
-                              cameras=cams, workers=workers, scheduler=scheduler, groups_per_task=groups_per_task)
-    groups = len(result.frame_ns)
-    arrays, surface = _paint_on_surface(output, key, rig, result, inputs)
-    write_masks(output, key, result, {"segmentation_calibration": str(calib),
-                                      "segmentation_background": str(background or ""),
-                                      "segmentation_masks": str(masks or ""),
-                                      **provenance_attrs("segment", inputs)}, arrays)
-    if stale is not None:
-        click.echo(f"redone the masks of {key}: {'; '.join(stale or ['--force'])}")
-    if overlays is not None:
-        write_overlays(overlays, opened, result)
+                              cameras=cams, workers=workers, scheduler=scheduler, groups_per_task=groups_per_task,
+                              masks_file=output.with_name(f".{output.name}.{key.replace('/', '-')}.masks.h5"))
+    try:
+        groups = len(result.frame_ns)
+        arrays, surface = _paint_on_surface(output, key, rig, result, inputs)
+        write_masks(output, key, result, {"segmentation_calibration": str(calib),
+                                          "segmentation_background": str(background or ""),
+                                          "segmentation_masks": str(masks or ""),
+                                          **provenance_attrs("segment", inputs)}, arrays)
+        if stale is not None:
+            click.echo(f"redone the masks of {key}: {'; '.join(stale or ['--force'])}")
+        if overlays is not None:
+            write_overlays(overlays, opened, result)
+    finally:
+        result.close()
     for message in result.report["warnings"]:
         click.echo(f"warning: {message}", err=True)
     paint = "" if result.paint is None else f", paint in {int((result.paint.sum(axis=(1, 2)) > 0).sum())} views"

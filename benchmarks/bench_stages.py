@@ -1,0 +1,179 @@
+"""Every stage that reads a take, on full-size takes of two lengths, against decoding alone.
+
+    .venv/bin/python benchmarks/bench_stages.py [--cameras 4] [--seconds 2 10] [--keep DIR]
+
+A hand take and an empty-cube take of `--cameras` cameras at 1280x720 and 120 FPS are rendered
+and recorded (4 frames a camera) and made `--seconds` long by benchmarks/fullsize_take.py's
+`extend` (the real format: MkvWriter with Cues, frames.csv at each camera's own clock). On each
+length, one process per stage, pinned to one CPU core with one thread for numpy, OpenCV and
+onnxruntime, runs through the command line as a user would:
+
+    decode (ffmpeg)     ffmpeg -threads 1 -i CAM.mkv -f null -, camera after camera: the floor
+    decode (Take)       Take.iter_frames over every camera: the toolkit's reader and OpenCV's decoder
+    sync-report         frame groups and the files' checks (element headers only, nothing decoded)
+    detect              palm detector and hand keypoints (ONNX) on every frame
+    annotate            triangulation, IK and the 1-euro filter from keypoints2d.h5 (reads no image)
+    segment             hand masks of every frame group, every camera, into DATASET.h5
+
+Printed per stage and length: frames, seconds, frames/s on the one core, its share of decoding's
+(ffmpeg's) rate, and peak memory (the process's largest resident set, from wait4); then the
+growth from the shortest to the longest take: time (linear: 5x for 2 s -> 10 s, goal <= 5.5x)
+and peak memory (constant: goal <= 1.2x). The calibration is the simulator's true cameras: this
+measures speed and memory, not accuracy (tests and the demo calibrate from the images).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path[:0] = [str(HERE.parent), str(HERE)]
+
+import numpy as np  # noqa: E402
+from fullsize_take import extend  # noqa: E402
+
+from dataset_tools.hand.bones import BoneLengths, save_subject  # noqa: E402
+from manus_core.skeleton import DEFAULT_BONE_LENGTHS  # noqa: E402
+from manus_core.take import Take  # noqa: E402
+from rig.layouts import make_rig  # noqa: E402
+from rig.record import record_take  # noqa: E402
+from rig.sim.cube import true_cameras  # noqa: E402
+
+BIN = Path(sys.executable).parent
+ONE_THREAD = {v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
+                               "ORT_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")}
+FLOOR_SHARE = 0.5      # every stage that reads frames at >= 50 % of decoding's rate (issue 23)
+TIME_GROWTH, MEMORY_GROWTH = 5.5 / 5, 1.2
+# A small process starts each stage, so that its peak memory (wait4's) is not the benchmark's: a
+# forked child's high-water mark starts at its parent's size and survives exec.
+LAUNCH = ("import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\npid = os.fork()\nif pid == 0:\n"
+          "    os.execvp(sys.argv[3], sys.argv[3:])\n_, status, usage = os.wait4(pid, 0)\n"
+          "open(sys.argv[2], 'w').write(str(usage.ru_maxrss))\nsys.exit(os.waitstatus_to_exitcode(status))\n")
+DECODE = ("import sys\nfrom manus_core.take import Take\nt = Take(sys.argv[1])\n"
+          "for cam in t.cameras:\n    for _ in t.iter_frames(cam):\n        pass\n")
+
+
+@dataclasses.dataclass
+class Run:
+    stage: str
+    seconds: float
+    frames: int
+    wall_s: float
+    rss_mb: float
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.wall_s
+
+
+def make_takes(root: Path, cameras: int, lengths: list[float]) -> dict[float, Path]:
+    """A session per length: hand take, empty cube (the background), the true calibration."""
+    config = make_rig("cube53", cameras=cameras, resolution=(1280, 720), fps=120.0, seed=0)
+    config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, supersample=1))
+    base = root / "base"
+    t = time.perf_counter()
+    for name, kind in (("hand", "hand"), ("empty", "calibration")):
+        record_take(config, base, name, kind, 4 / config.fps)
+    true_cameras(config).save(base / "cameras.json")
+    # the generic hand's bones: a few detected cameras are no basis for estimating them, nor the point here
+    save_subject(base / "bones.json", "generic", BoneLengths(np.asarray(DEFAULT_BONE_LENGTHS), np.full(20, np.nan),
+                                                             np.zeros(20, int)))
+    print(f"rendered and recorded 2 x {cameras} x 4 frames at 1280x720 in {time.perf_counter() - t:.0f} s", flush=True)
+    sessions = {}
+    for seconds in lengths:
+        session = root / f"{seconds:g}s"
+        shutil.copytree(base, session)
+        t = time.perf_counter()
+        frames = extend(session / "hand", seconds)
+        gb = sum(p.stat().st_size for p in (session / "hand" / "cams").glob("*.mkv")) / 1e9
+        print(f"{session / 'hand'}: {frames} frames, {gb:.2f} GB, made in {time.perf_counter() - t:.0f} s", flush=True)
+        sessions[seconds] = session
+    return sessions
+
+
+def measure(stage: str, argv: list[str], seconds: float, frames: int, cpu: int, log: Path) -> Run:
+    """Run one stage's process on core `cpu`; its wall time and peak resident memory."""
+    env = {**os.environ, **ONE_THREAD}
+    peak = log.with_suffix(".rss")
+    with open(log, "ab") as out:
+        out.write(f"\n$ {' '.join(argv)}\n".encode())
+        out.flush()
+        start = time.perf_counter()
+        code = subprocess.run([sys.executable, "-c", LAUNCH, str(cpu), str(peak), *argv], stdout=out, stderr=out,
+                              env=env).returncode
+        wall = time.perf_counter() - start
+    if code not in (0, 1):   # sync-report exits 1 on a failing verdict, which still ran
+        raise SystemExit(f"{stage} failed (exit {code}); see {log}")
+    return Run(stage, seconds, frames, wall, int(peak.read_text()) / 1024)
+    return Run(stage, seconds, frames, wall, usage.ru_maxrss / 1024)
+
+
+def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
+    take, empty, calib = session / "hand", session / "empty", session / "cameras.json"
+    opened = Take(take)
+    frames = sum(opened.frame_count(c) for c in opened.cameras)
+    ffmpeg = " && ".join(f"ffmpeg -v error -threads 1 -i {opened.video_file(c)} -f null -" for c in opened.cameras)
+    cli = str(BIN / "manus-capture")
+    runs = [measure("decode (ffmpeg)", ["bash", "-c", ffmpeg], seconds, frames, cpu, log),
+            measure("decode (Take)", [sys.executable, "-c", DECODE, str(take)], seconds, frames, cpu, log),
+            measure("sync-report", [cli, "sync-report", str(take)], seconds, frames, cpu, log),
+            measure("detect", [cli, "detect", str(take), "--force"], seconds, frames, cpu, log),
+            measure("annotate", [cli, "annotate", str(take), "--calib", str(calib), "--keypoints", "file",
+                                 "--bones", str(session / "bones.json"), "-o", str(session / "dataset.h5")],
+                    seconds, frames, cpu, log)]
+    groups = len(np.load(take / "frame_groups.npz")["frame_ns"])
+    runs.append(measure("segment", [cli, "segment", str(take), "--calib", str(calib), "--background", str(empty),
+                                    "-o", str(session / "dataset.h5")], seconds, groups * len(opened.cameras), cpu,
+                        log))
+    return runs
+
+
+def report(runs: list[Run], lengths: list[float]) -> None:
+    floor = {r.seconds: r.fps for r in runs if r.stage == "decode (ffmpeg)"}
+    print(f"\n{'stage':<16} {'take':>5} {'frames':>7} {'s':>8} {'frames/s/core':>14} {'of decode':>10} {'peak MB':>8}")
+    for r in runs:
+        print(f"{r.stage:<16} {r.seconds:>4g}s {r.frames:>7} {r.wall_s:>8.1f} {r.fps:>14.1f} "
+              f"{r.fps / floor[r.seconds]:>9.0%} {r.rss_mb:>8.0f}")
+    short, long = min(lengths), max(lengths)
+    if short == long:
+        return
+    print(f"\ngrowth {short:g} s -> {long:g} s (linear time: {long / short:g}x, goal <= {TIME_GROWTH * long / short:g}x; "
+          f"constant memory: goal <= {MEMORY_GROWTH:g}x)")
+    by = {(r.stage, r.seconds): r for r in runs}
+    for stage in dict.fromkeys(r.stage for r in runs):
+        a, b = by[stage, short], by[stage, long]
+        time_ratio, rss_ratio = b.wall_s / a.wall_s, b.rss_mb / a.rss_mb
+        ok = time_ratio <= TIME_GROWTH * long / short and rss_ratio <= MEMORY_GROWTH
+        print(f"{stage:<16} time {time_ratio:5.2f}x  peak memory {rss_ratio:5.2f}x  {'ok' if ok else 'MISSED'}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cameras", type=int, default=4)
+    parser.add_argument("--seconds", type=float, nargs="+", default=[2.0, 10.0])
+    parser.add_argument("--keep", type=Path, default=None, help="make the takes here and keep them")
+    args = parser.parse_args()
+    root = args.keep or Path(tempfile.mkdtemp(prefix="bench_stages_"))
+    cpu = min(os.sched_getaffinity(0))
+    try:
+        sessions = make_takes(root, args.cameras, args.seconds)
+        runs = []
+        for seconds, session in sessions.items():
+            runs += stages(session, seconds, cpu, root / "stages.log")
+            print(f"{seconds:g} s take: done", flush=True)
+        report(runs, args.seconds)
+    finally:
+        if args.keep is None:
+            shutil.rmtree(root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

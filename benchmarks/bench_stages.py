@@ -113,7 +113,6 @@ def measure(stage: str, argv: list[str], seconds: float, frames: int, cpu: int, 
     if code not in (0, 1):   # sync-report exits 1 on a failing verdict, which still ran
         raise SystemExit(f"{stage} failed (exit {code}); see {log}")
     return Run(stage, seconds, frames, wall, int(peak.read_text()) / 1024)
-    return Run(stage, seconds, frames, wall, usage.ru_maxrss / 1024)
 
 
 def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
@@ -145,8 +144,8 @@ def report(runs: list[Run], lengths: list[float]) -> None:
     short, long = min(lengths), max(lengths)
     if short == long:
         return
-    print(f"\ngrowth {short:g} s -> {long:g} s (linear time: {long / short:g}x, goal <= {TIME_GROWTH * long / short:g}x; "
-          f"constant memory: goal <= {MEMORY_GROWTH:g}x)")
+    print(f"\ngrowth {short:g} s -> {long:g} s (linear time: {long / short:g}x, "
+          f"goal <= {TIME_GROWTH * long / short:g}x; constant memory: goal <= {MEMORY_GROWTH:g}x)")
     by = {(r.stage, r.seconds): r for r in runs}
     for stage in dict.fromkeys(r.stage for r in runs):
         a, b = by[stage, short], by[stage, long]

@@ -70,35 +70,11 @@ class MatroskaVideo:
     def _header(self, pos: int) -> tuple[int, int | None, int] | None:
         """(id, payload size or None when unknown, payload start) of the element at `pos`; None
         when its header runs past the end of the file; ValueError where no element can start."""
-        head = os.pread(self._fd, HEADER_MAX, pos)
-        if not head:
-            return None
-        id_len = 9 - head[0].bit_length()          # leading zero bits + 1
-        if id_len > 4:
-            raise ValueError(pos)
-        if id_len >= len(head):
-            return None
-        size_len = 9 - head[id_len].bit_length()
-        if size_len > 8:
-            raise ValueError(pos)
-        if id_len + size_len > len(head):
-            return None
-        value = int.from_bytes(head[id_len:id_len + size_len], "big") & ((1 << (7 * size_len)) - 1)
-        length = None if value == (1 << (7 * size_len)) - 1 else value
-        return int.from_bytes(head[:id_len], "big"), length, pos + id_len + size_len
+        found = _parse_header(os.pread(self._fd, HEADER_MAX, pos), 0)
+        return None if found is None else (found[0], found[1], pos + found[2])
 
     def _payload(self, data: int, length: int) -> bytes:
         return os.pread(self._fd, length, data)
-
-    def _children(self, start: int, end: int) -> Iterator[tuple[int, int, int]]:
-        """(id, size, payload start) of the complete elements of known size in [start, end)."""
-        pos = start
-        while pos < end:
-            found = self._header(pos)
-            if found is None or found[1] is None or found[2] + found[1] > end:
-                return
-            yield found
-            pos = found[2] + found[1]
 
     def _open(self) -> None:
         try:
@@ -117,11 +93,10 @@ class MatroskaVideo:
         self.muxer, self.first_cluster, cues_at = "", None, None
         for eid, length, data in self._top_level():
             if eid == SEEK_HEAD and length is not None:
-                cues_at = self._cues_position(data, length)
+                cues_at = self._cues_position(self._payload(data, length))
             elif eid == INFO and length is not None:
-                for child, size, at in self._children(data, data + length):
-                    if child == MUXING_APP:
-                        self.muxer = self._payload(at, size).decode("utf-8", "replace")
+                muxer = _children(self._payload(data, length)).get(MUXING_APP, b"")
+                self.muxer = muxer.decode("utf-8", "replace")
         self.cues = self._read_cues(cues_at) if self.muxer == FRAME_INDEX_MUXER and cues_at is not None else []
 
     def _top_level(self) -> Iterator[tuple[int, int | None, int]]:
@@ -143,18 +118,17 @@ class MatroskaVideo:
                 return
             pos = data + length
 
-    def _cues_position(self, data: int, length: int) -> int | None:
-        for eid, size, at in self._children(data, data + length):
-            if eid != SEEK:
-                continue
-            fields = {child: self._payload(a, s) for child, s, a in self._children(at, at + size)}
+    def _cues_position(self, seek_head: bytes) -> int | None:
+        for eid, seek in _elements(seek_head):
+            fields = _children(seek) if eid == SEEK else {}
             if fields.get(SEEK_ID) == CUES.to_bytes(4, "big") and SEEK_POSITION in fields:
                 return self.segment + int.from_bytes(fields[SEEK_POSITION], "big")
         return None
 
     def _read_cues(self, at: int) -> list[tuple[int, int]]:
         """(frame index, cluster's file offset) of every Cue point, in order; [] when the Cues
-        are not where the SeekHead says (a file whose writer died before it wrote them)."""
+        are not where the SeekHead says (a file whose writer died before it wrote them). The Cues
+        are read in one piece: a task that opens the video pays one read, however long it is."""
         try:
             found = self._header(at)
         except ValueError:
@@ -162,19 +136,11 @@ class MatroskaVideo:
         if found is None or found[0] != CUES or found[1] is None or found[2] + found[1] > self.size:
             return []
         cues = []
-        for eid, size, data in self._children(found[2], found[2] + found[1]):
-            if eid != CUE_POINT:
-                continue
-            time = cluster = None
-            for child, s, a in self._children(data, data + size):
-                if child == CUE_TIME:
-                    time = int.from_bytes(self._payload(a, s), "big")
-                elif child == CUE_TRACK_POSITIONS:
-                    for grand, s2, a2 in self._children(a, a + s):
-                        if grand == CUE_CLUSTER_POSITION:
-                            cluster = self.segment + int.from_bytes(self._payload(a2, s2), "big")
-            if time is not None and cluster is not None:
-                cues.append((time, cluster))
+        for eid, point in _elements(self._payload(found[2], found[1])):
+            fields = _children(point) if eid == CUE_POINT else {}
+            where = _children(fields.get(CUE_TRACK_POSITIONS, b"")).get(CUE_CLUSTER_POSITION)
+            if CUE_TIME in fields and where is not None:
+                cues.append((int.from_bytes(fields[CUE_TIME], "big"), self.segment + int.from_bytes(where, "big")))
         return sorted(cues)
 
     # -- frames ------------------------------------------------------------------------------
@@ -200,8 +166,8 @@ class MatroskaVideo:
                 self.problem = f"element {eid:#x} of unknown size at byte {pos}"
                 return
             if data + length > end:
-                inside = f"frame {frames + 1}" if eid in (SIMPLE_BLOCK, BLOCK) else f"the element at byte {pos} ({eid:#x})"
-                self.problem = f"cut short: ends inside {inside}"
+                inside = f"frame {frames + 1}" if eid in (SIMPLE_BLOCK, BLOCK) else f"the element at byte {pos}"
+                self.problem = f"cut short: ends inside {inside}" + ("" if eid in (SIMPLE_BLOCK, BLOCK) else f" ({eid:#x})")
                 return
             if eid in (SIMPLE_BLOCK, BLOCK):
                 yield data, length
@@ -233,6 +199,49 @@ class MatroskaVideo:
                 track_len = 9 - block[0].bit_length()       # track number (vint), timecode (2), flags (1)
                 yield np.frombuffer(block, np.uint8, offset=track_len + 3)
             k += 1
+
+
+def _parse_header(buf: bytes, pos: int) -> tuple[int, int | None, int] | None:
+    """(id, payload size or None when unknown, payload start) of the element at buf[pos]; None
+    when the header runs past the buffer; ValueError where no element can start."""
+    if pos >= len(buf):
+        return None
+    id_len = 9 - buf[pos].bit_length()          # leading zero bits + 1
+    if id_len > 4:
+        raise ValueError(pos)
+    if pos + id_len >= len(buf):
+        return None
+    size_len = 9 - buf[pos + id_len].bit_length()
+    if size_len > 8:
+        raise ValueError(pos)
+    data = pos + id_len + size_len
+    if data > len(buf):
+        return None
+    value = int.from_bytes(buf[pos + id_len:data], "big") & ((1 << (7 * size_len)) - 1)
+    length = None if value == (1 << (7 * size_len)) - 1 else value
+    return int.from_bytes(buf[pos:pos + id_len], "big"), length, data
+
+
+def _elements(buf: bytes) -> Iterator[tuple[int, bytes]]:
+    """(id, payload) of the complete elements of known size in a payload read into memory."""
+    pos = 0
+    while True:
+        try:
+            found = _parse_header(buf, pos)
+        except ValueError:
+            return
+        if found is None or found[1] is None or found[2] + found[1] > len(buf):
+            return
+        yield found[0], buf[found[2]:found[2] + found[1]]
+        pos = found[2] + found[1]
+
+
+def _children(buf: bytes) -> dict[int, bytes]:
+    """The first payload of each element id among the elements of `buf`."""
+    out: dict[int, bytes] = {}
+    for eid, payload in _elements(buf):
+        out.setdefault(eid, payload)
+    return out
 
 
 def count_frames(path: str | Path) -> VideoFrames:

@@ -128,3 +128,41 @@ def test_reader_names_what_is_not_a_matroska_file(tmp_path):
     assert count_frames(tmp_path / "empty.mkv") == (0, "empty (0 bytes)")
     assert count_frames(tmp_path / "text.mkv") == (0, "not a Matroska file (no EBML header)")
     assert count_frames(tmp_path / "absent.mkv")[1].startswith("cannot be read (No such file")
+
+
+def test_reading_a_take_in_frame_ranges_grows_linearly_with_its_length(tmp_path, jpegs, monkeypatch):
+    """Tasks of 16 frames each (as detect splits a camera) over a take and one twice as long:
+    every frame is decoded once, and the element headers walked grow with the take, not with its
+    square (each task enters its video through the Cues instead of walking from frame 0)."""
+    from manus_core import take as take_module
+    from manus_core.take import Take
+
+    headers, decoded = [0], [0]
+    real_header, real_decode = MatroskaVideo._header, take_module._decode
+
+    def header(self, pos):
+        headers[0] += 1
+        return real_header(self, pos)
+
+    def decode(packet, path, k):
+        decoded[0] += 1
+        return real_decode(packet, path, k)
+
+    monkeypatch.setattr(MatroskaVideo, "_header", header)
+    monkeypatch.setattr(take_module, "_decode", decode)
+    cost = {}
+    for n in (150, 300):
+        folder = tmp_path / f"t{n}"
+        (folder / "cams").mkdir(parents=True)
+        _write(folder / "cams" / "a.mkv", jpegs[:n], cluster_frames=30)
+        (folder / "take.json").write_text(json.dumps({"cameras": ["a"], "fps": 120}))
+        (folder / "frames.csv").write_text("cam,seq,t_device_ns,t_host_ns,bytes,flags\n" + "".join(
+            f"a,{k},{k * 8333333},{k * 8333333 + 1000},{len(jpegs[k])},0\n" for k in range(n)))
+        headers[0] = decoded[0] = 0
+        take = Take(folder)
+        for start in range(0, n, 16):
+            stop = min(start + 16, n)
+            assert [k for k, _ in take.iter_frames("a", start, stop)] == list(range(start, stop))
+        cost[n] = headers[0], decoded[0]
+    assert cost[150][1] == 150 and cost[300][1] == 300
+    assert cost[300][0] <= 2.2 * cost[150][0], cost     # from frame 0 each time: 3.4x

@@ -166,8 +166,9 @@ class MatroskaVideo:
                 self.problem = f"element {eid:#x} of unknown size at byte {pos}"
                 return
             if data + length > end:
-                inside = f"frame {frames + 1}" if eid in (SIMPLE_BLOCK, BLOCK) else f"the element at byte {pos}"
-                self.problem = f"cut short: ends inside {inside}" + ("" if eid in (SIMPLE_BLOCK, BLOCK) else f" ({eid:#x})")
+                block = eid in (SIMPLE_BLOCK, BLOCK)
+                inside = f"frame {frames + 1}" if block else f"the element at byte {pos} ({eid:#x})"
+                self.problem = f"cut short: ends inside {inside}"
                 return
             if eid in (SIMPLE_BLOCK, BLOCK):
                 yield data, length

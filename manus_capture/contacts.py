@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from manus_core.dataset import add_arrays
 
 from .splat.rasterize import rasterize
+from .torch_threads import torch_threads
 
 TAU_M = 0.004
 # Contact is drawn on the skin, which is opaque: every Gaussian is splatted this opaque, whatever
@@ -30,6 +31,12 @@ TAU_M = 0.004
 # diluted below the threshold (docs/contacts.md, "Rendering contact").
 SURFACE_OPACITY = 0.99
 CHUNK = 1 << 12  # hand points per torch.cdist block on the GPU: 4096 x M distances at a time
+# Frames posed per call. MKL's matrix product adds up a posed point in an order that depends on
+# how many frames are in the call and on the thread count (3e-8 m apart, measured), so frames are
+# posed in calls of this many, counted from the take's first frame, on one thread: a frame's
+# points are then the same whichever task of a split take (contact_tasks.py) or process poses it.
+# One thread is as fast here as eight.
+POSE_FRAMES = 32
 
 
 class PosedModel(Protocol):
@@ -93,9 +100,7 @@ def hand_object_contacts(model: PosedModel, angles: np.ndarray, object_means: np
         raise ValueError(f"tau must be positive, got {tau}")
     angles = np.atleast_2d(np.asarray(angles, dtype=np.float64))
     finite = np.all(np.isfinite(angles), axis=1)
-    with torch.no_grad():
-        means = model.pose_batch(torch.as_tensor(np.where(finite[:, None], angles, 0.0), dtype=torch.float32))
-    means = means.cpu().numpy()
+    means = _posed_means(model, np.where(finite[:, None], angles, 0.0))
     T, G = means.shape[:2]
     object_means = np.asarray(object_means, dtype=np.float64)
     hand_flat = means.reshape(-1, 3)
@@ -111,10 +116,21 @@ def hand_object_contacts(model: PosedModel, angles: np.ndarray, object_means: np
     distance = distance.reshape(T, G)
     obj_distance = np.full((T, len(object_means)), np.inf)
     np.minimum.at(obj_distance, (i // G, j), v)
-    instant = contact_value(distance, tau, soft)
-    object_instant = contact_value(obj_distance, tau, soft)
+    return accumulate(contact_value(distance, tau, soft), contact_value(obj_distance, tau, soft), tau, soft)
+
+
+def accumulate(instant: np.ndarray, object_instant: np.ndarray, tau: float, soft: bool) -> ContactMaps:
+    """The maps of instantaneous contact (T,G) and (T,M): accumulated by maximum over the frames."""
     return ContactMaps(instant, instant.max(axis=0, initial=0.0), object_instant,
                        object_instant.max(axis=0, initial=0.0), tau, soft)
+
+
+def _posed_means(model: PosedModel, angles: np.ndarray) -> np.ndarray:
+    """Posed hand points (T,G,3) of finite angles (T,26), POSE_FRAMES frames a call, one thread."""
+    with torch.no_grad(), torch_threads(1):
+        # one call even for no frames: its (0,G,3) keeps the shapes of an empty take
+        return np.concatenate([model.pose_batch(torch.as_tensor(angles[s:s + POSE_FRAMES], dtype=torch.float32))
+                               .cpu().numpy() for s in range(0, max(len(angles), 1), POSE_FRAMES)])
 
 
 def model_contacts(hand, angles: np.ndarray, obj, tau: float = TAU_M, soft: bool = False,

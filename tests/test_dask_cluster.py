@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_annotate import session  # noqa: F401  (a fixture)
-from test_segment_cli import grasp_session  # noqa: F401  (a fixture)
+from test_annotate import inline_result, session  # noqa: F401  (fixtures)
 from test_annotate_detect import CAMERAS, TICKS, installed, rendered  # noqa: F401  (fixtures)
+from test_segment_cli import grasp_session  # noqa: F401  (a fixture)
 
 from dataset_tools.keypoints.keypoints2d import read_keypoints_h5
 
@@ -144,3 +144,124 @@ def test_segment_on_the_cluster_matches_a_local_run(grasp_session, cluster, tmp_
     assert len(masks["local"]["masks/hand"]) >= 3 and masks["local"]["masks/hand"].any()
     for n, value in masks["local"].items():
         np.testing.assert_array_equal(masks["dask"][n], value, err_msg=n)
+
+
+@pytest.fixture(scope="module")
+def contact_inputs(session, inline_result, tmp_path_factory):  # noqa: F811
+    """The session's DATASET.h5 with paint masks (every pixel) on its hand take, a MANUS-Hand
+    checkpoint (untrained surfels on the template of the fitted bones) and an object checkpoint
+    of points on the box the grasp take holds: the grasp has contacts, and they can be scored."""
+    import torch
+    from test_contacts import surface_samples
+
+    from manus_capture.builder import surface_hand
+    from manus_capture.splat.checkpoint import save_checkpoint
+    from manus_capture.splat.gaussians import Gaussians
+    from manus_core.dataset import add_arrays, read_dataset
+    from rig.sim.motion import make_motion
+    from rig.sim.objects import make_object
+
+    folder = tmp_path_factory.mktemp("contacts")
+    dataset = folder / "DATASET.h5"
+    dataset.write_bytes(inline_result[0].read_bytes())
+    data = read_dataset(dataset)
+    hand = surface_hand(data["S1/grasp_01"].bone_lengths)
+    save_checkpoint(folder / "hand.safetensors", hand.gaussians, kind="hand", extra=hand.extra_tensors())
+    box = make_object("box")   # where the session's grasp take holds it (test_annotate.session)
+    (R,), (t,) = make_motion("grasp", session["hand"], box, 1.0).object_poses(np.zeros(1))
+    points = surface_samples(lambda x: box.sdf(x, (R, t)), t, box.radius + 0.01, 20_000)
+    save_checkpoint(folder / "object.safetensors",
+                    Gaussians.from_points(torch.as_tensor(points, dtype=torch.float32), sh_degree=0), kind="object")
+    cameras = list(data["S1/hand_01"].cameras)
+    width, height = session["rig"].size[0].astype(int)
+    add_arrays(dataset, "S1/hand_01", {"paint/masks": np.ones((len(cameras), height, width), bool)},
+               {"mask_cameras": cameras}, stage="segment")
+    return {"dataset": dataset, "hand": folder / "hand.safetensors", "object": folder / "object.safetensors",
+            "angles": data["S1/grasp_01"].joint_angles, "calib": session["root"] / "calib"}
+
+
+def test_contacts_in_processes_are_the_inline_run_bit_for_bit(contact_inputs):
+    """Soft contacts (every distance counts) of two tasks of 32 frames in two local processes are
+    the maps of one task in this process, and of one model_contacts call over the take."""
+    from manus_capture.contact_tasks import contacts_in_tasks
+    from manus_capture.contacts import model_contacts
+    from manus_capture.splat.checkpoint import load_checkpoint
+    from manus_capture.splat.hand import HandGaussians
+
+    c = contact_inputs
+    inline = contacts_in_tasks("S1/grasp_01", c["hand"], c["object"], c["angles"], 0.004, True)
+    pooled = contacts_in_tasks("S1/grasp_01", c["hand"], c["object"], c["angles"], 0.004, True, workers=2,
+                               frames_per_task=32)
+    gaussians, extra, _ = load_checkpoint(c["hand"])
+    direct = model_contacts(HandGaussians.from_checkpoint(gaussians, extra), c["angles"],
+                            load_checkpoint(c["object"])[0], 0.004, True)
+    assert inline.instant.shape == (len(c["angles"]), len(gaussians)) and inline.accumulated.max() > 0.5
+    for maps in (pooled, direct):
+        for name in ("instant", "accumulated", "object_instant", "object_accumulated"):
+            assert np.array_equal(getattr(maps, name), getattr(inline, name)), name
+
+
+def test_contacts_and_evaluate_on_the_cluster_match_local_runs(contact_inputs, cluster, tmp_path):
+    """contacts in tasks of 32 frames on the two workers against one task here; evaluate's two
+    scores (the Gaussian hand, the capsule baseline) on the workers against this process."""
+    import h5py
+    from click.testing import CliRunner
+
+    from manus_capture.cli import cli
+
+    address, _ = cluster
+    c = contact_inputs
+    models = ["--hand", str(c["hand"]), "--object", str(c["object"])]
+    maps = {}
+    for name, extra in (("local", []), ("dask", ["--scheduler", address, "--frames-per-task", "32"])):
+        dataset = tmp_path / f"{name}.h5"
+        dataset.write_bytes(c["dataset"].read_bytes())
+        res = CliRunner().invoke(cli, ["contacts", str(dataset), "--take", "S1/grasp_01", *models, "--soft",
+                                       "--device", "cpu", *extra])
+        assert res.exit_code == 0, res.output
+        with h5py.File(dataset) as f:
+            maps[name] = {n: a[()] for n, a in f["S1/grasp_01/contacts"].items()}
+    assert maps["local"]["accumulated"].max() > 0.5
+    for n, value in maps["local"].items():
+        assert np.array_equal(maps["dask"][n], value), n
+
+    scores = {}
+    for name, extra in (("local", []), ("dask", ["--scheduler", address])):
+        res = CliRunner().invoke(cli, ["evaluate", str(c["dataset"]), "--grasp", "S1/grasp_01", "--canonical",
+                                       "S1/hand_01", "--calib", str(c["calib"]), *models, "--gt-views", "3",
+                                       "-o", str(tmp_path / f"{name}.json"), *extra])
+        assert res.exit_code == 0, res.output
+        scores[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    assert scores["local"]["contact_iou"] > 0 and scores["local"]["baseline_iou"] > 0
+    assert scores["dask"] == scores["local"]
+
+
+def test_reconstruct_on_the_cluster_matches_a_local_run(grasp_session, cluster, tmp_path):  # noqa: F811
+    """Each model trained on a worker (one torch thread: its nanny's OMP_NUM_THREADS=1) is the one
+    trained here with four (--threads 1 sets the count inside the task; with 4 it differs)."""
+    import torch
+    from click.testing import CliRunner
+
+    from manus_capture.cli import cli
+    from manus_capture.splat.checkpoint import load_checkpoint
+
+    address, _ = cluster
+    common = ["--cameras", str(grasp_session / "cameras.json"), "--iterations", "20"]
+    commands = {"object": ["object", "--take", str(grasp_session / "S" / "object"), "--masks", "truth"],
+                "hand": ["hand", "--take", str(grasp_session / "S" / "grasp"), "--truth", "--frames", "0",
+                         "--test-frames", "3"]}
+    threads = torch.get_num_threads()
+    for kind, args in commands.items():
+        checkpoints = {}
+        for name, extra in (("local", []), ("dask", ["--scheduler", address])):
+            checkpoints[name] = tmp_path / f"{kind}-{name}.safetensors"
+            torch.set_num_threads(4)
+            try:
+                res = CliRunner().invoke(cli, ["reconstruct", *args, *common, *extra, "-o", str(checkpoints[name])])
+            finally:
+                torch.set_num_threads(threads)
+            assert res.exit_code == 0, res.output
+        (local, local_extra, local_meta), (dask, dask_extra, dask_meta) = map(load_checkpoint, checkpoints.values())
+        assert dask_meta == local_meta
+        for n, value in {**local.tensors(), **local_extra}.items():
+            assert torch.equal({**dask.tensors(), **dask_extra}[n], value), f"{kind} {n}"

@@ -9,11 +9,11 @@ from pathlib import Path
 import click
 import cv2
 import numpy as np
-import torch
 
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.bars import Bars
-from manus_capture.contacts import contact_image, model_contacts, write_contacts
+from manus_capture.contact_tasks import FRAMES_PER_TASK, contacts_in_tasks
+from manus_capture.contacts import POSE_FRAMES, contact_image, write_contacts
 from manus_capture.evaluate import render_contacts
 from manus_capture.splat.checkpoint import load_checkpoint
 from manus_capture.splat.hand import HandGaussians
@@ -21,6 +21,8 @@ from manus_core.dataset import read_dataset
 from manus_core.errors import EvaluateError
 from manus_core.fileio import write_atomic
 from manus_core.provenance import provenance_attrs
+
+from .cluster import cluster_options
 
 
 @click.command("contacts", context_settings={"help_option_names": ["-h", "--help"]})
@@ -34,21 +36,24 @@ from manus_core.provenance import provenance_attrs
               help="Contact distance (m).")
 @click.option("--soft", is_flag=True, help="Soft contact 1 - d/tau instead of 0/1.")
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
-              help="Neighbour search: KD-tree on the CPU or chunked distances on CUDA.")
+              help="Neighbour search: KD-tree on the CPU or chunked distances on CUDA (auto: CUDA when the "
+                   "process running a task has it).")
 @click.option("--calib", type=click.Path(path_type=Path), default=None,
               help="With --renders: the cameras to render the contact map into.")
 @click.option("--renders", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Folder for CAM.png: the accumulated contact on the hand at its firmest grip.")
+@cluster_options("into ranges of frames")
+@click.option("--frames-per-task", type=click.IntRange(1), default=FRAMES_PER_TASK, show_default=True,
+              help=f"Frames per task (rounded down to a multiple of {POSE_FRAMES}, at least {POSE_FRAMES}).")
 def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: float, soft: bool,
-            device: str, calib: Path | None, renders: Path | None) -> None:
+            device: str, calib: Path | None, renders: Path | None, workers: int, scheduler: str | None,
+            frames_per_task: int) -> None:
     """Contacts of the hand of take KEY with the object: for every frame, each hand Gaussian's
     nearest object Gaussian (and the reverse), contact below --tau; instantaneous maps (T,G) and
     the accumulated map (G,) into DATASET under KEY/contacts (docs/contacts.md)."""
     if (calib is None) != (renders is None):
         raise click.UsageError("--renders and --calib go together")
     start = time.perf_counter()
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
     data = read_dataset(dataset)
     if key not in data:
         raise EvaluateError(f"{dataset}: no take {key!r} (takes: {', '.join(data.takes) or 'none'})")
@@ -66,7 +71,9 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     obj, _, meta = load_checkpoint(object_path)
     if meta.get("kind") != "object":
         raise EvaluateError(f"{object_path}: a {meta.get('kind')!r} checkpoint, not an object")
-    maps = model_contacts(hand, angles, obj, tau, soft, device)
+    with Bars(unit="frame") as bars:
+        maps = contacts_in_tasks(key, hand_path, object_path, angles, tau, soft, device, workers, scheduler,
+                                 frames_per_task, bars)
     write_contacts(dataset, key, maps, {"contact_hand_model": str(hand_path), "contact_object_model": str(object_path),
                                         **provenance_attrs("contacts", inputs)})
     if renders is not None:

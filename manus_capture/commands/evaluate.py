@@ -10,15 +10,17 @@ import click
 import h5py
 
 from dataset_tools.calibration.formats import load_cameras
+from manus_capture.bars import Bars
 from manus_capture.builder import ModelInputs
-from manus_capture.contacts import model_contacts
-from manus_capture.evaluate import canonical_pose, pick_views, score_contacts, spread_cameras
+from manus_capture.evaluate import canonical_pose, pick_views
+from manus_capture.evaluate_tasks import Ablation, Checkpoints, ScoreTask, Scoring, scores_in_tasks
 from manus_capture.splat.checkpoint import load_checkpoint
-from manus_capture.splat.hand import HandGaussians
-from manus_capture.template import capsule_template
+from manus_capture.torch_threads import TRAIN_THREADS
 from manus_core.dataset import read_dataset
 from manus_core.errors import EvaluateError
 from manus_core.fileio import write_atomic
+
+from .cluster import cluster_options
 
 
 def _counts(ctx, param, values: tuple[str, ...]) -> tuple[int, ...]:
@@ -59,10 +61,14 @@ def _counts(ctx, param, values: tuple[str, ...]) -> tuple[int, ...]:
               help="Rendered contact value counted as contact.")
 @click.option("-o", "--output", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="scores.json (default: print only).")
+@cluster_options("into one task per model scored: the Gaussian hand, the baseline, each --views count")
+@click.option("--threads", type=click.IntRange(1), default=TRAIN_THREADS,
+              help="Torch threads of a task (default: this machine's cores); the ablation's models (and so its "
+                   "scores) depend on it, not on where the task runs.")
 def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: Path, object_path: Path,
             gt_views: int, views: tuple[int, ...], hand_take: Path | None, object_take: Path | None,
             background: Path | None, iterations: int, tau: float, threshold: float,
-            output: Path | None) -> None:
+            output: Path | None, workers: int, scheduler: str | None, threads: int) -> None:
     """Score the accumulated contact of GRASP against the paint seen in CANONICAL: the contact is
     carried onto the hand in the canonical pose, rendered into the ground-truth views, thresholded
     and compared with the paint masks (IoU and F1 per view, as in the MANUS contact table). The
@@ -92,37 +98,36 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
         raise EvaluateError(f"{calib}: has none of the cameras of {canonical}'s paint masks ({', '.join(mask_cams)})")
     rig = calibrated.subset(used)
     paint = paint[[mask_cams.index(c) for c in used]]
-    pose = canonical_pose(canonical_ann.joint_angles)
-    angles = grasp_ann.joint_angles
-    gaussians, extra, _ = load_checkpoint(hand_path)
-    hand = HandGaussians.from_checkpoint(gaussians, extra)
-    obj, _, _ = load_checkpoint(object_path)
-    chosen = pick_views(paint, gt_views)
-
-    def score(model, gaussians_obj):
-        maps = model_contacts(model, angles, gaussians_obj, tau)
-        return score_contacts(model, pose, maps.accumulated, rig, paint, chosen, threshold)[0]
-
-    ours = score(hand, obj)
-    baseline = score(capsule_template(grasp_ann.bone_lengths), obj)
+    if views and (hand_take is None or object_take is None or background is None):
+        raise click.UsageError("--views needs --hand-take, --object-take and --background")
+    for path in (hand_path, object_path):
+        load_checkpoint(path)   # a broken checkpoint stops us now, not after the ablation's inputs
+    scoring = Scoring(grasp_ann.joint_angles, canonical_pose(canonical_ann.joint_angles), rig, paint,
+                      pick_views(paint, gt_views), tau, threshold)
+    # the tasks' paths are absolute: a worker runs elsewhere
+    hand, obj = str(hand_path.resolve()), str(object_path.resolve())
+    models = {"gaussian": Checkpoints(obj, hand), "baseline": Checkpoints(obj, template_bones=grasp_ann.bone_lengths)}
+    counts = [str(c) for c in dict.fromkeys(len(rig) if n == 0 else min(n, len(rig)) for n in views)]
+    if counts:
+        inputs = ModelInputs.prepare(rig, dataset, hand_take.resolve(), object_take.resolve(), background,
+                                     object_iterations=iterations, hand_iterations=iterations)
+        models.update((c, Ablation(inputs, int(c))) for c in counts)
+    scores = {}
+    with Bars(unit="model") as bars:
+        bars("evaluate", 0, len(models))
+        tasks = [ScoreTask(name, how, scoring, threads) for name, how in models.items()]
+        for task, out in scores_in_tasks(grasp, tasks, workers, scheduler):
+            scores[task.name] = out
+            bars("evaluate", len(scores), len(models))
+    ours, baseline = scores.pop("gaussian"), scores.pop("baseline")
     result = {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
               "baseline_f1": baseline.mean_f1, "gaussian": ours.to_json(), "baseline": baseline.to_json(),
               "tau_m": tau, "threshold": threshold}
-    if views:
-        if hand_take is None or object_take is None or background is None:
-            raise click.UsageError("--views needs --hand-take, --object-take and --background")
-
-        inputs = ModelInputs.prepare(rig, dataset, hand_take, object_take, background,
-                                     object_iterations=iterations, hand_iterations=iterations)
-        result["views"] = {}
-        for n in views:
-            count = len(rig) if n == 0 else min(n, len(rig))
-            click.echo(f"ablation: models from {count} cameras ...", err=True)
-            models = inputs.train(spread_cameras(rig, count))
-            result["views"][str(count)] = score(models.hand, models.object).mean_iou
+    if counts:
+        result["views"] = {c: scores[c].mean_iou for c in counts}
     if output is not None:
         write_atomic(output, json.dumps(result, indent=2).encode())
     ablation = "".join(f"; {k} cameras IoU {v:.3f}" for k, v in result.get("views", {}).items())
-    click.echo(f"evaluate: {grasp} on {len(chosen)} views: IoU {ours.mean_iou:.3f}, F1 {ours.mean_f1:.3f}; "
+    click.echo(f"evaluate: {grasp} on {len(scoring.views)} views: IoU {ours.mean_iou:.3f}, F1 {ours.mean_f1:.3f}; "
                f"capsule baseline IoU {baseline.mean_iou:.3f}, F1 {baseline.mean_f1:.3f}{ablation} "
                f"({time.perf_counter() - start:.1f} s)")

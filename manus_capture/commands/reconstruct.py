@@ -25,7 +25,7 @@ from dataset_tools.calibration.formats import load_cameras
 from manus_capture.bars import Bars
 from manus_capture.builder import surface_hand, surface_hand_config
 from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
-from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
+from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand
 from manus_capture.splat.losses import load_lpips
 from manus_capture.splat.rasterize import EPS2D
 from manus_capture.splat.takes import (
@@ -40,11 +40,15 @@ from manus_capture.splat.takes import (
     still_frames,
     undistort,
 )
-from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, render, train_object, world_to_camera
+from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, render, world_to_camera
+from manus_capture.torch_threads import TRAIN_THREADS
+from manus_capture.train_tasks import HandTraining, ObjectTraining, train_in_task
 from manus_core.cameras import scale_intrinsics
 from manus_core.errors import ReconstructInputError
 from manus_core.fileio import write_atomic
 from manus_core.take import Take
+
+from .cluster import cluster_options
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -151,13 +155,16 @@ def _common_options(f):
                      help="LPIPS state dict (see docs/splat.md); LPIPS is off without it."),
         click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default="alex", show_default=True),
         click.option("--seed", type=int, default=0, show_default=True),
+        click.option("--threads", type=click.IntRange(1), default=TRAIN_THREADS,
+                     help="Torch threads of the training (default: this machine's cores): the checkpoint depends "
+                          "on it, not on where it ran."),
         click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
                      help="Checkpoint (.safetensors)."),
         click.option("--force", is_flag=True, help="Overwrite an existing checkpoint."),
     ]
     for option in reversed(options):
         f = option(f)
-    return f
+    return cluster_options("into one task: the model, trained in one process or on one Dask worker")(f)
 
 
 @command.command("object")
@@ -181,7 +188,8 @@ def _common_options(f):
 def object_command(take: Path | None, frame: int | None, images_dir: Path | None, masks_arg: str | None,
                    test_cameras: str, iterations: int, points: int, surfels: bool, cameras_path: Path,
                    only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
-                   lpips_weights: Path | None, lpips_net: str, seed: int, output: Path, force: bool) -> None:
+                   lpips_weights: Path | None, lpips_net: str, seed: int, threads: int, output: Path, force: bool,
+                   workers: int, scheduler: str | None) -> None:
     """Fit static Gaussians to the calibrated views of an object; print held-out PSNR/SSIM."""
     if (take is None) == (images_dir is None):
         raise click.UsageError("give exactly one of --take and --images")
@@ -213,17 +221,18 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
                       lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net,
                       seed=seed)
     start = time.perf_counter()
+    task = ObjectTraining(crop_views(views.subset(train_idx), crop_margin), cfg, threads)
     with Bars() as bars:
-        result = train_object(crop_views(views.subset(train_idx), crop_margin), cfg, progress=bars)
+        gaussians = train_in_task(task, f"object-{output.resolve()}", workers, scheduler, bars)
     elapsed = time.perf_counter() - start
-    save_checkpoint(output, result.gaussians, kind="object",
+    save_checkpoint(output, gaussians, kind="object",
                     metadata={"calibration": str(cameras_path), "source": str(take or images_dir),
                               "frame": str(frame), "scale": str(scale), "background": background,
                               "cameras": ",".join(views.ids), "test_cameras": ",".join(held_out),
                               "eps2d": str(cfg.eps2d)})
-    summary = f"{output}: {len(result.gaussians)} Gaussians from {len(train_idx)} views, {elapsed:.0f} s"
+    summary = f"{output}: {len(gaussians)} Gaussians from {len(train_idx)} views, {elapsed:.0f} s"
     if test_idx:
-        summary += "; " + _scores_text(evaluate(result.gaussians, views.subset(test_idx), bg,
+        summary += "; " + _scores_text(evaluate(gaussians, views.subset(test_idx), bg,
                                                 _lpips(lpips_weights, lpips_net), cfg.eps2d))
     click.echo(summary)
 
@@ -255,8 +264,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
 def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None, truth: bool, frames_arg: str,
                  poses: int, test_frames: str, masks_arg: str | None, iterations: int, init: str, per_bone: int,
                  cameras_path: Path, only_cameras: str, scale: float, crop_margin: int, sh_degree: int,
-                 background: str, lpips_weights: Path | None, lpips_net: str, seed: int, output: Path,
-                 force: bool) -> None:
+                 background: str, lpips_weights: Path | None, lpips_net: str, seed: int, threads: int, output: Path,
+                 force: bool, workers: int, scheduler: str | None) -> None:
     """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
     if truth == (dataset_path is not None):
         raise click.UsageError("give exactly one of --dataset and --truth")
@@ -295,9 +304,10 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
         model = HandGaussians.initialize(hand.bone_lengths, per_bone=per_bone, sh_degree=sh_degree, seed=seed)
         cfg = HandConfig.fast(iterations, **settings)
     start = time.perf_counter()
+    task = HandTraining(model, angles[train_rows], [crop_views(views[i], crop_margin) for i in train_rows], cfg,
+                        threads)
     with Bars() as bars:
-        train_hand(model, angles[train_rows], [crop_views(views[i], crop_margin) for i in train_rows], cfg,
-                   progress=bars)
+        model = train_in_task(task, f"hand-{output.resolve()}", workers, scheduler, bars)
     elapsed = time.perf_counter() - start
     save_checkpoint(output, model.gaussians, kind="hand", extra=model.extra_tensors(),
                     metadata={"calibration": str(cameras_path), "source": str(take), "angles": hand.source,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import multiprocessing
+import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import TypeVar
 
@@ -18,6 +19,18 @@ T = TypeVar("T")
 CONNECT_TIMEOUT_S = 5.0   # a scheduler that has not answered by then is named (the CLI exits 2)
 
 
+def connect(scheduler: str):
+    """A Dask client of `scheduler`; SchedulerError (exit 2) naming it when it does not answer."""
+    # Dask is optional and slow to import: only a run on a cluster needs it
+    from distributed import Client
+
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise SchedulerError(f"the Dask scheduler {scheduler} does not answer ({type(exc).__name__} within "
+                             f"{CONNECT_TIMEOUT_S:g} s): start one (`dask scheduler`) or leave --scheduler out") from None
+
+
 def run_tasks(fn: Callable[[T], object], tasks: Sequence[T], workers: int = 1, scheduler: str | None = None,
               key: Callable[[T], str] = str) -> Iterator[tuple[T, object]]:
     """(task, result or the exception it raised) as tasks finish. `key(task)` names a task on the
@@ -25,17 +38,12 @@ def run_tasks(fn: Callable[[T], object], tasks: Sequence[T], workers: int = 1, s
     if not tasks:
         return
     if scheduler:
-        # Dask is optional and slow to import: only a run on a cluster needs it
-        from distributed import Client, as_completed
+        from distributed import as_completed
 
-        try:
-            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise SchedulerError(f"the Dask scheduler {scheduler} does not answer ({type(exc).__name__} within "
-                                 f"{CONNECT_TIMEOUT_S:g} s): start one (`dask scheduler`) or leave --scheduler "
-                                 "out") from None
-        with client:
-            futures = {client.submit(fn, t, pure=False, key=f"{fn.__name__}-{key(t)}"): t for t in tasks}
+        # a key names one result on the scheduler: two runs of the same tasks at once must not share them
+        run = uuid.uuid4().hex[:8]
+        with connect(scheduler) as client:
+            futures = {client.submit(fn, t, pure=False, key=f"{fn.__name__}-{key(t)}-{run}"): t for t in tasks}
             yield from _outcomes(futures, as_completed(futures))
         return
     if workers > 1:

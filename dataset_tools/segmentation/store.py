@@ -24,6 +24,7 @@ class MaskStore:
         if path is None:
             self.hand, self.object = np.zeros(shape, bool), np.zeros(shape, bool)
             return
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
         self._file = h5py.File(path, "w")
         # gzip, which every HDF5 reader has (the chunks are copied into DATASET.h5 as they are);
         # level 1: mostly-empty masks shrink as much as at add_arrays' 4, in less time

@@ -6,18 +6,34 @@ on their own schedule, as a UVC camera does: a frame is ready every 1/fps s and 
 the last BUFFERS frames; a reader that falls further behind loses frames (seq gaps). Every camera
 runs at 120 FPS (the MANUS cube's rate, so each keeps its real latency budget of BUFFERS frame
 periods); the number of cameras is searched, from the cube's 53, for the most that record
-without a single lost frame. Both sides write into the page cache (the files are fsynced after the
-timed part); a take longer than the machine's dirty-page budget runs at the disk's sustained
-speed instead, which the "append + fsync" line shows.
+without a single lost frame.
 
-A second search, take by take in turn with the first, records with the live monitor (`record
+Where: by default the disk's temporary folder, as a take is recorded; --ram records into a RAM
+file system (/dev/shm) where it has room, so that both sides measure what the path costs in CPU,
+which is what the recorder decides. A disk's page cache takes only so
+many dirty bytes (vm.dirty_background_ratio of the memory, about 2 GB on a 24 GB machine) before
+the kernel writes back, and past about 1.5 times that it holds every writer until the disk
+catches up: 2 s at the rates searched here are 3 to 5 GB, so on a disk that is slower than the
+rate the search finds the disk's writeback, not the recorder (docs/recording.md, "Speed").
+--out DIR measures another disk. On a disk the "with fsync" figure is its sustained speed.
+
+A second search (in the first run), take by take in turn with the first, records with the live monitor (`record
 --monitor`) serving the take to a page that polls it: /api/status and every camera's thumbnail
-each POLL_S, as the page refreshes. The page is another process (a browser is never in the recorder's process, and a poller thread
-there would add GIL contention the recorder never sees); the server, its sampling of the
-recorder and its thumbnail decodes are in the recorder's process, as with `record --monitor`.
+each POLL_S, as the page refreshes. The page is another process (a browser is never in the
+recorder's process, and a poller thread there would add GIL contention the recorder never sees);
+the server, its sampling of the recorder and its thumbnail decodes are in the recorder's process,
+as with `record --monitor`.
 The zero-drop camera count with the monitor should be >= 95 % of the count without.
 
-    .venv/bin/python benchmarks/bench_recorder.py [--fps 120] [--seconds 2] [--out DIR] [--no-monitor]
+The whole measurement (baseline and search) runs --runs times in a row, each search starting
+from the count the run before found, and the min, median and max over the runs are printed: a
+recorder that keeps up only now and then shows in the min. The goal, >= 80 % of the plain
+append, holds for every run or it is missed. A lost frame is counted where it was lost: by the
+camera (its reader came back too late: the camera's BUFFERS frames were overwritten) or by the
+host's ring (the writers fell half a second behind).
+
+    .venv/bin/python benchmarks/bench_recorder.py [--fps 120] [--seconds 2] [--runs 5] [--out DIR | --ram]
+        [--no-monitor]
 """
 
 from __future__ import annotations
@@ -28,12 +44,14 @@ import dataclasses
 import multiprocessing
 import os
 import shutil
+import statistics
 import tempfile
 import time
 import urllib.request
 from collections.abc import Iterator
 from multiprocessing.sharedctypes import Synchronized
 from pathlib import Path
+from typing import Self
 
 from manus_capture.monitor import start_monitor
 from rig.cameras import CameraInfo, Frame, TakeCameras
@@ -47,6 +65,9 @@ TARGET_FPS = 120.0
 TARGET_CAMERAS = 53
 POLL_S = 0.25        # the page's refresh: its status and every thumbnail this often
 MONITOR_GOAL = 0.95  # zero-drop cameras with the monitor / without (issue 24)
+RAM_DIR = Path("/dev/shm")
+RAM_SHARE = 0.4      # the largest take may fill this share of the RAM file system's free space
+GOAL = 0.80          # zero-drop frame rate / plain append, in every run (issue 23)
 
 
 def sample_frames(n: int = 4) -> list[bytes]:
@@ -96,6 +117,64 @@ class PacedCamera:
         k, self.k = self.k, self.k + 1
         t = int(self.t0 + k * self.period)
         return Frame(self.frames[k % len(self.frames)], k, t, now, 1280, 720, "jpeg")
+
+
+class Load:
+    """CPUs the rest of the machine kept busy while a block ran: other processes, and the kernel's
+    writeback of what this one wrote (from /proc/stat, less this process's own CPU time). On a
+    shared machine it tells a take that lost frames to a neighbour's load from one that did not."""
+
+    def __init__(self) -> None:
+        self.others: float | None = None
+
+    @staticmethod
+    def _busy() -> float | None:
+        try:
+            with open("/proc/stat") as f:
+                ticks = [int(x) for x in f.readline().split()[1:9]]
+        except OSError:
+            return None
+        # user nice system idle iowait irq softirq steal: all but idle and iowait
+        return (sum(ticks) - ticks[3] - ticks[4]) / os.sysconf("SC_CLK_TCK")
+
+    def __enter__(self) -> Self:
+        self._t, self._busy0, self._own = time.perf_counter(), self._busy(), os.times()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        busy, own = self._busy(), os.times()
+        if busy is not None and self._busy0 is not None:
+            mine = own.user - self._own.user + own.system - self._own.system
+            self.others = max(0.0, busy - self._busy0 - mine) / (time.perf_counter() - self._t)
+
+    def __str__(self) -> str:
+        return "" if self.others is None else f"; rest of the machine {self.others:.1f} CPUs"
+
+
+def file_system(folder: Path) -> str:
+    """The type of the file system that holds `folder` (tmpfs, ext4, ...), from /proc/mounts."""
+    best, kind = "", "unknown"
+    with contextlib.suppress(OSError), open("/proc/mounts") as f:
+        for line in f:
+            _, mount, fstype = line.split()[:3]
+            if str(folder).startswith(mount.rstrip("/") + "/") and len(mount) > len(best):
+                best, kind = mount, fstype
+    return kind
+
+
+def take_folder(out: Path | None, ram: bool, bytes_per_s: float, seconds: float) -> tuple[Path, float]:
+    """(where the takes go, the most frames/s x bytes a take there may write per second): `out`,
+    with `ram` the RAM file system where it holds the largest take the search may try, else the
+    disk's temporary folder."""
+    if out is not None:
+        return out, float("inf")
+    if ram and RAM_DIR.is_dir() and os.access(RAM_DIR, os.W_OK):
+        # its pages are memory: the smaller of its own free space and the machine's free memory
+        free = min(shutil.disk_usage(RAM_DIR).free, os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        room = free * RAM_SHARE / seconds
+        if room >= 1.5 * TARGET_CAMERAS * TARGET_FPS * bytes_per_s:
+            return RAM_DIR, room
+    return Path(tempfile.gettempdir()), float("inf")
 
 
 def plain_append(frames: list[bytes], folder: Path, seconds: float) -> tuple[float, float]:
@@ -151,10 +230,23 @@ def page_open(recorder: Recorder) -> Iterator[Synchronized]:
         server.stop()
 
 
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """One take: frames stored, lost (by the camera or the host), of those lost to a full ring,
+    wall seconds, thumbnails a monitoring page received, the rest of the machine's load."""
+
+    stored: int
+    lost: int
+    overflows: int
+    wall: float
+    served: int
+    load: Load
+
+
 def record(frames: list[bytes], folder: Path, cameras: int, fps: float, seconds: float,
-           monitor: bool = False) -> tuple[int, int, float, int]:
-    """(frames stored, frames lost, wall seconds, thumbnails served) of one take of `cameras` paced
-    cameras; `monitor`: with the monitor serving the take to a page polling it."""
+           monitor: bool = False) -> Outcome:
+    """One take of `cameras` paced cameras; `monitor`: with the monitor serving the take to a page
+    polling it."""
     rig = make_rig("cube53", resolution=(1280, 720), fps=fps, backend="v4l2", seed=0)
     # beyond the 53 cameras of the layout, more of the same with their own ids
     configs = tuple(dataclasses.replace(rig.cameras[i % len(rig.cameras)], id=f"cam{i:03d}") for i in range(cameras))
@@ -162,22 +254,24 @@ def record(frames: list[bytes], folder: Path, cameras: int, fps: float, seconds:
     cams = {c.id: PacedCamera(c.id, frames, fps) for c in configs}
     take = folder / f"take-{cameras}"
     recorder = Recorder(rig, take, "calibration", seconds, TakeCameras(cams), MonotonicClock())
-    with page_open(recorder) if monitor else contextlib.nullcontext() as served:
+    with page_open(recorder) if monitor else contextlib.nullcontext() as served, Load() as load:
         t = time.perf_counter()
         result = recorder.run()
         wall = time.perf_counter() - t
     shutil.rmtree(take)
-    lost = sum(c.seq_gaps + c.unwritten for c in result.cameras)
-    return result.frames, lost, wall, served.value if monitor else 0
+    # a full ring at the very end of a take leaves no gap after it: the larger of the two counts
+    lost = sum(max(c.seq_gaps, c.overflows) + c.unwritten for c in result.cameras)
+    return Outcome(result.frames, lost, sum(c.overflows for c in result.cameras), wall,
+                   served.value if monitor else 0, load)
 
 
 class Search:
-    """The most cameras at `fps` that record without a lost frame: from `start` up by half while
+    """The most cameras at `fps` that record without a lost frame: from `start` up by `step` while
     lossless (until `ceiling` frames/s) or down by half, then bisect to 5 %. `n` is the count to
     try next; add() takes its outcome."""
 
-    def __init__(self, start: int, fps: float, ceiling: float) -> None:
-        self.n, self.fps, self.ceiling = start, fps, ceiling
+    def __init__(self, start: int, fps: float, ceiling: float, step: float = 1.5) -> None:
+        self.n, self.fps, self.ceiling, self.step = start, fps, ceiling, step
         self.good, self.bad = 0, None
         self.done = False
 
@@ -189,69 +283,116 @@ class Search:
             self.bad = n
         if self.bad is None:
             self.done = n * self.fps > self.ceiling
-            self.n = n * 3 // 2
+            self.n = max(n + 1, int(n * self.step))
         elif self.bad - self.good <= max(1, self.good // 20):
             self.done = True
         else:
             self.n = (self.good + self.bad) // 2 if self.good else self.bad // 2
 
 
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One run: zero-drop cameras without and with the monitor (None: not searched), and the
+    plain append in frames/s (page cache, with fsync), best of the run's baselines."""
+
+    good: int
+    watched: int | None
+    cached: float
+    synced: float
+
+
+def one_run(frames: list[bytes], folder: Path, args: argparse.Namespace, start: int, step: float, monitor: bool,
+            room: float) -> Run:
+    """Search from `start` cameras up by `step`; `room`: bytes per second a take may write (a RAM
+    file system holds only so much)."""
+    # the baseline is taken before, during and after the search, and the best of the three is
+    # the reference: on a shared machine this errs against the recorder
+    baselines = [plain_append(frames, folder, args.seconds)]
+    size = sum(map(len, frames)) / len(frames)
+    ceiling = min(2.5 * baselines[0][0], room / size)
+    # without and with the monitor in turn, so that a load from elsewhere on a shared machine
+    # falls on both searches alike
+    searches = {watch: Search(start, args.fps, ceiling, step) for watch in (False, True) if monitor or not watch}
+    while not all(s.done for s in searches.values()):
+        for watch, search in searches.items():
+            if search.done:
+                continue
+            n = search.n
+            take = record(frames, folder, n, args.fps, args.seconds, watch)
+            verdict = "no drops" if take.lost == 0 else f"{take.lost} lost"
+            if take.overflows:
+                verdict += f" ({take.overflows} by a full ring)"
+            page = f", page got {take.served} thumbnails" if watch else ""
+            print(f"  recorder{' + monitor' if watch else ''}, {n:3d} cameras x {args.fps:g} FPS = "
+                  f"{n * args.fps:6.0f} frames/s: {take.stored} frames stored, {verdict} "
+                  f"({take.wall:.1f} s{page}{take.load})")
+            search.add(take.lost)
+            if take.lost and len(baselines) == 1:
+                baselines.append(plain_append(frames, folder, args.seconds))
+    baselines.append(plain_append(frames, folder, args.seconds))
+    return Run(searches[False].good, searches[True].good if True in searches else None,
+               max(b[0] for b in baselines), max(b[1] for b in baselines))
+
+
+def spread(values: list[float], fmt: str) -> str:
+    return " / ".join(format(v, fmt) for v in (min(values), statistics.median(values), max(values)))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fps", type=float, default=TARGET_FPS, help="frame rate of every camera")
     ap.add_argument("--seconds", type=float, default=2.0, help="length of each recorded take")
+    ap.add_argument("--runs", type=int, default=5, help="measurements in a row (min, median and max are shown)")
     ap.add_argument("--out", type=Path, default=None, help="folder on the disk to test (default: a temp dir)")
+    ap.add_argument("--ram", action="store_true",
+                    help="record into /dev/shm (where it has room): the recorder's own cost, without the disk's")
     ap.add_argument("--no-monitor", action="store_true", help="skip the search with the live monitor")
     args = ap.parse_args()
     frames = sample_frames()
     size = sum(map(len, frames)) / len(frames)
-    folder = Path(tempfile.mkdtemp(prefix="bench-recorder-", dir=args.out))
+    parent, room = take_folder(args.out, args.ram, size, args.seconds)
+    folder = Path(tempfile.mkdtemp(prefix="bench-recorder-", dir=parent))
+    runs: list[Run] = []
     try:
         print(f"frames: 1280x720 JPEG, {size / 1e3:.0f} KB mean; cameras keep {BUFFERS} frames; "
-              f"{os.cpu_count()} CPUs; disk {folder}")
-        # the baseline is taken before, during and after the search, and the best of the three is
-        # the reference: on a shared machine this errs against the recorder
-        baselines = [plain_append(frames, folder, args.seconds)]
-        ceiling = 2.5 * baselines[0][0]
-        # cameras at args.fps, from 53; without and with the monitor in turn, so that a load from
-        # elsewhere on a shared machine falls on both searches alike
-        searches = {monitor: Search(TARGET_CAMERAS, args.fps, ceiling) for monitor in (False, True)
-                    if not (monitor and args.no_monitor)}
-        while not all(s.done for s in searches.values()):
-            for monitor, search in searches.items():
-                if search.done:
-                    continue
-                n = search.n
-                stored, lost, wall, served = record(frames, folder, n, args.fps, args.seconds, monitor)
-                verdict = "no drops" if lost == 0 else f"{lost} lost"
-                page = f", page got {served} thumbnails" if monitor else ""
-                print(f"  recorder{' + monitor' if monitor else ''}, {n:3d} cameras x {args.fps:g} FPS = "
-                      f"{n * args.fps:6.0f} frames/s: {stored} frames stored, {verdict} ({wall:.1f} s{page})")
-                search.add(lost)
-                if lost and len(baselines) == 1:
-                    baselines.append(plain_append(frames, folder, args.seconds))
-        baselines.append(plain_append(frames, folder, args.seconds))
-        good = searches[False].good
-        cached, synced = max(b[0] for b in baselines), max(b[1] for b in baselines)
-        print(f"plain file append (one thread, one file; best of {len(baselines)}): {cached:.0f} frames/s "
-              f"({cached * size / 1e9:.2f} GB/s); with fsync {synced:.0f} frames/s ({synced * size / 1e9:.2f} GB/s)")
-        best = good * args.fps
-        print(f"recorder, zero drops: {best:.0f} frames/s = {good} cameras x {args.fps:g} FPS "
-              f"({best * size / 1e9:.2f} GB/s); {best / cached:.0%} of the plain append (goal >= 80%)")
-        need = TARGET_CAMERAS * TARGET_FPS
-        if best >= need:
-            print(f"{TARGET_CAMERAS} cameras x {TARGET_FPS:g} FPS ({need:.0f} frames/s) fit on this machine")
-        else:
-            print(f"{TARGET_CAMERAS} cameras x {TARGET_FPS:g} FPS ({need:.0f} frames/s) do NOT fit on this machine; "
-                  f"it records {int(best // TARGET_FPS)} cameras at {TARGET_FPS:g} FPS, or {TARGET_CAMERAS} cameras "
-                  f"at {best / TARGET_CAMERAS:.0f} FPS")
-        if True in searches:
-            watched = searches[True].good
-            ratio = watched / good if good else float(watched == 0)
-            print(f"with the monitor and a page polling every {POLL_S:g} s: {watched} cameras x {args.fps:g} FPS "
-                  f"with zero drops, without: {good}; {ratio:.0%} (goal >= {MONITOR_GOAL:.0%})")
+              f"{os.cpu_count()} CPUs; takes in {folder} ({file_system(folder)}); {args.runs} runs of "
+              f"{args.seconds:g} s takes")
+        start = TARGET_CAMERAS
+        for k in range(args.runs):
+            # the monitor is searched in the first run only: its goal is a ratio of two counts
+            # found side by side, and one pair of searches keeps the benchmark to a few minutes
+            # a run after the first starts from the count the run before found, and steps up less
+            run = one_run(frames, folder, args, start, 1.5 if k == 0 else 1.2, monitor=k == 0 and not args.no_monitor,
+                          room=room)
+            runs.append(run)
+            best = run.good * args.fps
+            print(f"run {k + 1}: plain append {run.cached:.0f} frames/s ({run.cached * size / 1e9:.2f} GB/s; with "
+                  f"fsync {run.synced:.0f}); recorder, zero drops: {best:.0f} frames/s = {run.good} cameras x "
+                  f"{args.fps:g} FPS ({best * size / 1e9:.2f} GB/s): {best / run.cached:.0%} of the plain append")
+            start = run.good or TARGET_CAMERAS
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+    ratios = [r.good * args.fps / r.cached for r in runs]
+    print(f"over {len(runs)} runs, min / median / max:")
+    print(f"  plain file append (one thread, one file; best of each run's baselines): "
+          f"{spread([r.cached for r in runs], '.0f')} frames/s; with fsync {spread([r.synced for r in runs], '.0f')}")
+    print(f"  recorder, zero drops: {spread([r.good for r in runs], '.0f')} cameras x {args.fps:g} FPS "
+          f"= {spread([r.good * args.fps for r in runs], '.0f')} frames/s")
+    print(f"  recorder / plain append: {spread(ratios, '.0%')} (goal >= {GOAL:.0%} in every run: "
+          f"{'met' if min(ratios) >= GOAL else 'NOT met'})")
+    need = TARGET_CAMERAS * TARGET_FPS
+    worst = min(r.good for r in runs) * args.fps
+    if worst >= need:
+        print(f"{TARGET_CAMERAS} cameras x {TARGET_FPS:g} FPS ({need:.0f} frames/s) fit on this machine in every run")
+    else:
+        print(f"{TARGET_CAMERAS} cameras x {TARGET_FPS:g} FPS ({need:.0f} frames/s) do NOT fit on this machine in "
+              f"every run; the worst run recorded {int(worst // TARGET_FPS)} cameras at {TARGET_FPS:g} FPS, or "
+              f"{TARGET_CAMERAS} cameras at {worst / TARGET_CAMERAS:.0f} FPS")
+    first = runs[0]
+    if first.watched is not None:
+        ratio = first.watched / first.good if first.good else float(first.watched == 0)
+        print(f"with the monitor and a page polling every {POLL_S:g} s (run 1): {first.watched} cameras x "
+              f"{args.fps:g} FPS with zero drops, without: {first.good}; {ratio:.0%} (goal >= {MONITOR_GOAL:.0%})")
 
 
 if __name__ == "__main__":

@@ -91,7 +91,7 @@ class Live:
         for s in self._streams.values():
             r, latest = s.report, s.latest
             cameras.append({"id": s.id, "frames": r.frames, "drops": r.seq_gaps, "bytes": r.bytes,
-                            "buffer_fill": min(1.0, len(s.ring.queue) / s.ring.maxsize), "status": r.status,
+                            "buffer_fill": s.fill, "status": r.status,
                             "last_frame_ns": None if latest is None else latest[1]})
         elapsed = 0.0
         if rec.t0_ns is not None and rec.start_ns is not None:

@@ -355,13 +355,15 @@ class RawCamera:
     def trigger(self) -> None: ...
 
     def info(self) -> CameraInfo:
-        return CameraInfo(self.id, "aravis", "raw", "0", 64, 48, 120.0, self.encoding)
+        h, w = self.image.shape[:2]
+        return CameraInfo(self.id, "aravis", "raw", "0", w, h, 120.0, self.encoding)
 
     def read(self, timeout_s: float = 1.0) -> Frame:
         t = self.t0 + int(self.k * PERIOD_NS)
         self.clock.advance_to(t)
         self.k += 1
-        return Frame(self.image.tobytes(), self.k - 1, t, t, 64, 48, self.encoding)
+        h, w = self.image.shape[:2]
+        return Frame(self.image.tobytes(), self.k - 1, t, t, w, h, self.encoding)
 
 
 def test_raw_frames_are_jpeg_encoded(tmp_path):

@@ -10,6 +10,7 @@ import time
 
 import cv2
 import numpy as np
+from test_recorder import RawCamera
 
 import rig.record.recorder as recorder_module
 from manus_core.take import Take
@@ -144,35 +145,6 @@ def test_a_camera_whose_read_never_returns_is_abandoned(tmp_path, monkeypatch):
     for cid, report in reports.items():
         if cid != hung:
             assert report.status == "ok" and report.frames >= 40 and report.seq_gaps == 0
-
-
-class RawCamera:
-    """A GigE camera's raw frames (mono8 or bayer_rg8) on a fast virtual clock."""
-
-    def __init__(self, cam_id: str, raw: np.ndarray, encoding: str, clock: VirtualClock, t0: int) -> None:
-        self.id, self.data, self.encoding, self.clock, self.t0, self.k = cam_id, raw.tobytes(), encoding, clock, t0, 0
-        self.h, self.w = raw.shape
-
-    def open(self) -> None: ...
-
-    def configure(self) -> None: ...
-
-    def start(self) -> None: ...
-
-    def stop(self) -> None: ...
-
-    def close(self) -> None: ...
-
-    def trigger(self) -> None: ...
-
-    def info(self) -> CameraInfo:
-        return CameraInfo(self.id, "test", "raw", self.id, self.w, self.h, 120.0, self.encoding)
-
-    def read(self, timeout_s: float = 1.0) -> Frame:
-        t = self.t0 + int(self.k * 1e9 / 120)
-        self.clock.advance_to(t)
-        self.k += 1
-        return Frame(self.data, self.k - 1, t, t, self.w, self.h, self.encoding)
 
 
 def test_raw_frames_are_encoded_on_several_threads_and_decode_to_the_raw_pixels(tmp_path, monkeypatch):

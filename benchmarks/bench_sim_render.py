@@ -1,8 +1,13 @@
-"""Render all 53 views of one grasp frame of the simulated cube, on one core.
+"""Render all 53 views of one grasp frame of the simulated cube, in one thread.
 
-Goal (issue: foundation): under 1 s for the 53 views at 320x180 once the static walls are cached.
+Goal (issue: foundation): under 1 s for the 53 views at 320x180 on 2 cores once the static walls are
+cached. One thread is the stricter case: embreex casts a batch of rays in the calling thread (its
+`run` loops over single-ray Embree queries with the GIL released), so a second core helps only
+when views render in threads of their own, as the recorder's camera threads do.
 Prints the cold time (first frame, walls and table rendered and cached) and the warm time (every
-later frame: only the hand and the object are ray-cast), at 320x180 and 1280x720.
+later frame: the hand's posed mesh and the object built into an Embree scene, then only the rays
+near them cast), at 320x180 and 1280x720. The frames are 10 ms apart while the hand approaches the
+object, so that each warm frame poses the hand anew, as every frame of a take does.
 """
 
 from __future__ import annotations
@@ -18,6 +23,8 @@ import cv2  # noqa: E402
 from rig.layouts import make_rig  # noqa: E402
 from rig.sim.cube import SimulatedCube  # noqa: E402
 
+GOAL_S = 1.0
+
 
 def main() -> None:
     cv2.setNumThreads(1)
@@ -26,16 +33,15 @@ def main() -> None:
         rig = make_rig("cube53", resolution=(width, height))
         rig = dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, paint=True))
         cube = SimulatedCube(rig, "grasp", duration_s=1.0)
-        t_hold = cube.t0_ns + 0.5e9
+        t_approach = cube.t0_ns + 0.3e9
         times = []
-        for frame in range(3):
+        for frame in range(4):
             start = time.perf_counter()
             for cam in range(len(cube.cameras)):
-                cube.render(cam, t_hold + frame * 1e6)
+                cube.render(cam, t_approach + frame * 10e6)
             times.append(time.perf_counter() - start)
         warm = min(times[1:])
-        goal = "met" if (width, height) != (320, 180) or warm < 1.0 else "MISSED"
-        goal = goal if (width, height) == (320, 180) else "-"
+        goal = ("met" if warm < GOAL_S else "MISSED") if (width, height) == (320, 180) else "-"
         print(f"{width:>6}x{height:<5} {times[0]:8.2f} {warm:8.2f} {1000 * warm / len(cube.cameras):13.1f} {goal:>6}")
 
 

@@ -96,18 +96,38 @@ class TruthFrames:
 
 @dataclass(frozen=True, eq=False)
 class TruthHand:
-    """The hand on every tick: joint_angles (F,26), joints3d (F,21,3), bone_lengths (20,)."""
+    """The hand on every tick: joint_angles (F,26), joints3d (F,21,3), bone_lengths (20,), and
+    rest_joints (21,3) of the rest pose, the frame of `TruthSkin`."""
 
     GROUP: ClassVar[str] = "hand"
     joint_angles: np.ndarray
     joints3d: np.ndarray
     bone_lengths: np.ndarray
+    rest_joints: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class TruthSkin:
+    """The subject's rest-pose skin, for measuring any hand model against it: points (N,3) (m, in
+    the frame of `TruthHand.rest_joints`), outward normals (N,3), bone (N,) the bone each point
+    follows most (bone b runs from PARENTS[b + 1] to joint b + 1), faces (T,3) of its mesh, its
+    blend-skinning weights (N,20) (the skin of a frame: the weights' blend of the bones' motions,
+    pressed flat where it would enter the object), and the subject's parameters as a TOML text."""
+
+    GROUP: ClassVar[str] = "hand/rest_surface"
+    points: np.ndarray
+    normals: np.ndarray
+    bone: np.ndarray
+    faces: np.ndarray
+    weights: np.ndarray
+    subject_toml: str = ""
 
 
 @dataclass(frozen=True, eq=False)
 class TruthContact:
-    """Contact on the hand's surface points (P): their rest positions and bones; `instant` (F,P)
-    for grasp takes with an object, `accumulated` (P,) for grasp and canonical (the paint) takes."""
+    """Contact on the hand's surface points (P, the vertices of `TruthSkin`): their rest
+    positions and bones; `instant` (F,P) for grasp takes with an object (the skin touching it),
+    `accumulated` (P,) for grasp and canonical (the paint) takes."""
 
     GROUP: ClassVar[str] = "contact"
     points_rest: np.ndarray
@@ -126,7 +146,8 @@ class TruthObject:
     t: np.ndarray
 
 
-Record = TypeVar("Record", TruthInfo, TruthCameras, TruthClock, TruthFrames, TruthHand, TruthContact, TruthObject)
+Record = TypeVar("Record", TruthInfo, TruthCameras, TruthClock, TruthFrames, TruthHand, TruthSkin, TruthContact,
+                 TruthObject)
 
 
 def write_record(f: h5py.File, record: Record, compressed: Collection[str] = ()) -> None:
@@ -181,6 +202,10 @@ class GroundTruth:
     @cached_property
     def hand(self) -> TruthHand:
         return self._read(TruthHand)
+
+    @cached_property
+    def skin(self) -> TruthSkin:
+        return self._read(TruthSkin)
 
     @cached_property
     def contact(self) -> TruthContact:

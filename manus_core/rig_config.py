@@ -15,7 +15,8 @@ from typing import Annotated, Any, Literal, get_args
 
 import numpy as np
 import tomli_w
-from pydantic import Field
+from pydantic import AfterValidator, Field
+from pydantic_core import PydanticCustomError
 
 from manus_core.errors import ConfigError
 from manus_core.validation import CLOSED, NOT_A_KEY, Bool, Float, Int, Str, between, validate, worded
@@ -30,6 +31,15 @@ PLACEHOLDER = "CHANGE-ME"             # the device `rig init` writes for a real 
 # the simulated hands (their bones are rig.sim.hand.SUBJECTS; the base layer cannot import them)
 SIM_SUBJECTS = ("s01", "s02", "s03")
 
+
+
+def _sim_subject(value: str) -> str:
+    if value not in SIM_SUBJECTS and not value.endswith(".toml"):
+        raise PydanticCustomError("subject", f"unknown subject {value!r} (known: {', '.join(SIM_SUBJECTS)}, "
+                                             "or a subject file NAME.toml)")
+    return value
+
+
 Vector3 = tuple[Float, Float, Float]
 Level = between(Float, 0, 1)
 Side = between(Int, MIN_SIDE, MAX_SIDE, "pixels")
@@ -37,6 +47,7 @@ Offset = between(Float, -0.1, 0.1, "of the image's side")
 Rate = between(Float, 0, MAX_FPS, "frames per second", low_open=True)
 Milliseconds = between(Float, 0, 1000, "ms")
 Microseconds = between(Float, 0, 1e6, "us")
+SimSubject = Annotated[Str, AfterValidator(_sim_subject)]
 Backend = Annotated[BackendName, worded(f"unknown backend {{value}} (known: {', '.join(BACKENDS)})")]
 
 
@@ -130,7 +141,8 @@ class SimConfig:
     tag_size: between(Float, 0.02, 1, "m") = 0.16
     tags_per_wall: between(Int, 0, 9) = 5   # 6 walls of 9x9 tags use 486 of the 587 ids of 36h11
     table_tags: Bool = True   # tags on the table's sides too (up to 36 more ids)
-    subject: Literal[SIM_SUBJECTS] = "s01"
+    # a built-in subject, or a subject file (docs/simulation.md) ending in .toml
+    subject: SimSubject = "s01"
     object: Literal["box", "mug", "sphere"] = "mug"
     paint: Bool = False
     # 0: as fast as rendering allows (virtual clock); 1: real time

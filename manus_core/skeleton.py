@@ -12,6 +12,7 @@ flat, naturally spread open hand. See docs/hand.md.
 
 from __future__ import annotations
 
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -232,7 +233,11 @@ class HandSkeleton:
         angles = _as_array(angles)
         xp, const = _namespace(angles)
         joints, frames = self._chain(angles, bone_lengths)
-        rest = self._chain(xp.zeros_like(angles[..., :N_DOF]), bone_lengths)[0]
+        if bone_lengths is None and xp is np:
+            # the subject's own rest pose, the same for every call (bone_lengths is set once, in __init__)
+            rest = self._rest_joints
+        else:
+            rest = self._chain(xp.zeros_like(angles[..., :N_DOF]), bone_lengths)[0]
         rs, ts = [], []
         for b in range(20):
             rest_frame = np.eye(3) if b % 4 == 0 else REST_FRAMES[b // 4]
@@ -241,6 +246,10 @@ class HandSkeleton:
             rs.append(r)
             ts.append(joints[start] - _mv(r, rest[start]))
         return xp.stack(rs, -3), xp.stack(ts, -2)
+
+    @cached_property
+    def _rest_joints(self) -> np.ndarray:
+        return self.rest_joints()
 
     def clamp(self, angles: Any) -> Any:
         """Angles with every DOF inside [lower, upper]."""

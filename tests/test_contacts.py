@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-from manus_capture.contacts import contact_value, hand_object_contacts, render_values, surface_value
+from manus_capture.contacts import TAU_M, contact_value, hand_object_contacts, render_values, surface_value
 from manus_capture.evaluate import canonical_pose, mask_scores, pick_views, score_contacts, spread_cameras
 from manus_capture.template import PointHand, capsule_template
 from manus_core.errors import EvaluateError
 from rig.layouts import make_rig
 from rig.sim.cube import SimulatedCube
+from rig.sim.skin import SPACING_M
 
 
 def surface_samples(sdf, centre: np.ndarray, radius: float, n: int, seed: int = 0) -> np.ndarray:
@@ -42,11 +43,23 @@ def scene():
     pose = grasp.motion.object_poses(np.zeros(1))
     R, t = pose[0][0], pose[1][0]
     obj = surface_samples(lambda x: grasp.object.sdf(x, (R, t)), t, grasp.object.radius + 0.01, 200_000)
-    hand = grasp.hand
-    truth_hand = PointHand(hand.skeleton, hand.surface_rest, hand.surface_bone, 0.4 * hand.spacing)
     times = np.linspace(0.0, 2.0, 121)
-    return {"cfg": cfg, "grasp": grasp, "canonical": canonical, "object": obj, "truth_hand": truth_hand,
-            "angles": grasp.motion.hand_angles(times), "times": times}
+    return {"cfg": cfg, "grasp": grasp, "canonical": canonical, "object": obj, "truth_hand": SkinHand(grasp.hand),
+            "angles": grasp.motion.hand_angles(times), "times": times, "pose": (R, t)}
+
+
+class SkinHand(PointHand):
+    """The simulated skin's vertices as the point model that the contact code scores, posed by the
+    simulator's own blend skinning: the true hand."""
+
+    def __init__(self, hand) -> None:
+        super().__init__(hand.skeleton, hand.surface_rest, hand.surface_bone, 0.4 * SPACING_M,
+                         hand.surface_normal_rest)
+        self.skin = hand
+
+    def posed(self, angles: np.ndarray, normals: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+        points, n = self.skin.surface_points(angles, normals=normals)
+        return points, n
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -59,21 +72,25 @@ def test_contact_value_binary_and_soft():
     assert np.allclose(contact_value(d, soft=True), [1, 0.5, 0.025, 0, 0, 0])
 
 
-def test_true_geometry_reproduces_the_simulated_paint(scene):
-    """Accumulated contact of the true hand surface against points on the true object surface
-    agrees with the simulator's paint (computed from the exact SDF): the contact code is right."""
+def test_true_geometry_reproduces_the_exact_contact(scene):
+    """Contact of the true skin against points on the true object surface agrees with the
+    simulator's contact at the same distance computed from the exact SDF: the contact code is right."""
     maps = hand_object_contacts(scene["truth_hand"], scene["angles"], scene["object"])
-    truth = scene["grasp"].motion.contact_accumulated()
-    assert maps.instant.shape == (len(scene["angles"]), len(truth))
-    assert truth.sum() > 200
+    grasp = scene["grasp"]
+    frame, vertex = grasp.hand.contact(scene["angles"], grasp.object, scene["pose"], TAU_M)
+    exact = np.zeros((len(scene["angles"]), grasp.hand.n_points), bool)
+    exact[frame, vertex] = True
+    assert maps.instant.shape == exact.shape
+    assert exact.any(axis=0).sum() > 200
     # object points ~1 mm apart under-estimate the distance by at most that: the boundary of a
-    # 4 mm band moves by well under a point spacing; frames every 16 ms against the path's 1500
-    agreement = iou(maps.accumulated > 0.5, truth)
+    # 4 mm band moves by well under a point spacing
+    agreement = iou(maps.accumulated > 0.5, exact.any(axis=0))
     assert agreement > 0.9, agreement
-    # the instant map at the hold is the true instant contact
-    hold = np.argmax(maps.instant.sum(axis=1))
-    true_instant = scene["grasp"].motion.contact_instant(scene["times"][hold:hold + 1])[0]
-    assert iou(maps.instant[hold] > 0.5, true_instant) > 0.85
+    hold = np.argmax(exact.sum(axis=1))
+    assert iou(maps.instant[hold] > 0.5, exact[hold]) > 0.85
+    # the paint is what touched: a part of the 4 mm band
+    paint = grasp.motion.contact_accumulated()
+    assert 100 < paint.sum() and exact.any(axis=0)[paint].mean() > 0.95
     # the object side: points touched are near the hand's contact, and there are some
     assert 0 < maps.object_accumulated.sum() < len(scene["object"])
 

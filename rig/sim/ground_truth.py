@@ -21,8 +21,10 @@ from manus_core.ground_truth import (
     TruthHand,
     TruthInfo,
     TruthObject,
+    TruthSkin,
     write_record,
 )
+from rig.sim.hand import subject_toml
 
 
 def default_label_frames(n_frames: int, count: int = 8) -> np.ndarray:
@@ -71,7 +73,12 @@ def write_ground_truth(cube, path, label_frames=None) -> Path:
         seconds = cube.seconds(ticks)
         if cube.hand is not None:
             angles = cube.motion.hand_angles(seconds)
-            write_record(f, TruthHand(angles, cube.hand.skeleton.forward(angles), cube.hand.skeleton.bone_lengths))
+            hand = cube.hand
+            write_record(f, TruthHand(angles, hand.skeleton.forward(angles), hand.skeleton.bone_lengths,
+                                      hand.skeleton.rest_joints()))
+            write_record(f, TruthSkin(hand.surface_rest, hand.surface_normal_rest, hand.surface_bone, hand.faces,
+                                      hand.weights, subject_toml(hand.shape)),
+                         compressed=("points", "normals", "bone", "faces", "weights"))
             instant = accumulated = None
             if cube.kind == "grasp" and cube.object is not None:
                 instant, accumulated = cube.motion.contact_instant(seconds), cube.motion.contact_accumulated()

@@ -11,14 +11,16 @@ canonical (the flat open hand after the grasp, palm up towards the cameras, carr
 
 Grasp contact is found, not scripted: the hand descends onto the object until the palm is
 PALM_GAP_M away (bisection on the descent), then each finger closes in three stages (all
-flexions, then PIP+DIP, then DIP: the finger wraps) until its moving segments touch the object
-or the table at CONTACT_DEPTH_M (bisection on a per-finger closing parameter, all fingers in one
-vectorized batch). Paint: hand surface points within PAINT_DISTANCE_M of a painted object turn
-green and stay green.
+flexions, then PIP+DIP, then DIP: the finger wraps) until the skin of its moving segments presses
+PRESS_DEPTH_M into the object or reaches the table (bisection on a per-finger closing parameter,
+all fingers in one vectorized batch). Rendered, the pressed skin flattens against the object
+(hand.press). Paint: the skin that touches a painted object (hand.TOUCH_M) turns green and
+stays green.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -31,15 +33,14 @@ from rig.sim.objects import SimObject
 
 KINDS = ("calibration", "hand", "object", "grasp", "canonical")
 
-PAINT_DISTANCE_M = 0.004       # MANUS contact threshold tau
-CONTACT_DEPTH_M = 0.0002       # fingers press this far into the surface (skin gives a little)
+# a grasping finger's pulp gives 1-3 mm under a light grip; the skin flattens over that depth
+PRESS_DEPTH_M = 0.0015
 PALM_GAP_M = 0.0025            # palm stops a few mm from the object
 _APPROACH_GAP_M = 0.002        # pre-shaped fingers keep clear of the object during the descent
 _APPROACH_HEIGHT_M = 0.12      # descent length
 _PAINT_SAMPLES = 1500          # path samples of the accumulated contact, independent of duration
-_SEGMENT_SAMPLES = 24          # points along a capsule axis when measuring its distance
 _TABLE_HALF = 0.2              # half extent of the table top in x and y
-_TABLE_CLEARANCE_M = 0.001     # fingers that reach the table rest just above it
+_TABLE_CLEARANCE_M = PRESS_DEPTH_M + 0.001   # fingers that reach the table stop 1 mm above it
 _GRASP_POINT = 0.7             # hand point over the object: this far from the wrist to the middle MCP
 
 Pose = shapes.Pose
@@ -81,18 +82,6 @@ def _hand_pose(rotation: np.ndarray, wrist: np.ndarray, fingers: np.ndarray) -> 
     return np.concatenate([_rotvec(rotation), wrist, np.asarray(fingers, dtype=np.float64).ravel()])
 
 
-def capsule_distance(a: np.ndarray, b: np.ndarray, r: np.ndarray, sdf: SdfFn,
-                     samples: int = _SEGMENT_SAMPLES) -> np.ndarray:
-    """Distance (...,M) from capsules (a, b (...,M,3), r (M,)) to the solid of an exact SDF.
-
-    The SDF of a convex solid is convex along a segment, so a few dozen samples give its
-    minimum to a few micrometres; minus the radius, that is the capsule's distance.
-    """
-    s = np.linspace(0.0, 1.0, samples)
-    x = a[..., None, :] + s[:, None] * (b - a)[..., None, :]
-    return sdf(x).min(axis=-1) - r
-
-
 class Motion:
     """A take's scene as a function of time. Build with make_motion.
 
@@ -102,7 +91,7 @@ class Motion:
 
     def __init__(self, kind: str, duration_s: float, hand: HandModel | None, obj: SimObject | None,
                  object_pose: Pose | None, keyframes: _Keyframes | None,
-                 paint_source: "Motion | None" = None) -> None:
+                 paint_source: "Motion | None" = None, grasp: tuple | None = None) -> None:
         self.kind = kind
         self.duration_s = float(duration_s)
         self.hand = hand
@@ -110,7 +99,7 @@ class Motion:
         self._object_pose = object_pose
         self._keys = keyframes
         self._paint_source = paint_source
-        self._first_contact: np.ndarray | None = None
+        self._grasp = grasp      # what the grasp was planned from, for its paint
 
     @property
     def has_hand(self) -> bool:
@@ -153,54 +142,25 @@ class Motion:
     def _object_sdf(self) -> SdfFn:
         return lambda x: self.obj.sdf(x, self._object_pose)
 
-    def _near_pairs(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(frame, point, distance) for the surface points that may lie within the paint
-        distance: only points of capsules that come that close are posed and measured."""
-        a, b, r = self.hand.capsules(angles)
-        cap = capsule_distance(a, b, r, self._object_sdf())
-        near = cap[:, self.hand.surface_capsule] < PAINT_DISTANCE_M + 5e-4
-        frame, point = np.nonzero(near)
-        rot, trans = self.hand.skeleton.bone_transforms(angles)
-        bone = self.hand.surface_bone[point]
-        x = np.einsum("kij,kj->ki", rot[frame, bone], self.hand.surface_rest[point]) + trans[frame, bone]
-        return frame, point, self.obj.sdf(x, self._object_pose)
-
     def contact_instant(self, t: np.ndarray) -> np.ndarray:
-        """(T,P) bool: hand surface points within 4 mm of the object at each time."""
+        """(T,P) bool: hand surface points that touch the object at each time."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         out = np.zeros((len(t), self.hand.n_points if self.hand else 0), dtype=bool)
         if self._keys is None or self._object_pose is None:
             return out
-        frame, point, dist = self._near_pairs(self._keys(t))
-        hit = dist < PAINT_DISTANCE_M
-        out[frame[hit], point[hit]] = True
+        frame, point = self.hand.contact(self._keys(t), self.obj, self._object_pose)
+        out[frame, point] = True
         return out
 
     @property
     def first_contact_s(self) -> np.ndarray:
-        """(P,) the first time each hand point came within 4 mm of the object (inf: never).
-
-        Sampled on a fixed grid of the take's timeline, so the contact set along the path does
-        not depend on the duration chosen for the take.
-        """
-        if self._first_contact is None:
-            first = np.full(self.hand.n_points if self.hand else 0, np.inf)
-            if self._keys is not None and self._object_pose is not None:
-                t = np.linspace(0.0, self.duration_s, _PAINT_SAMPLES)
-                angles = self._keys(t)
-                # Holds repeat a pose exactly: measure each distinct pose once.
-                moved = np.r_[True, np.any(angles[1:] != angles[:-1], axis=1)]
-                frames = np.flatnonzero(moved)
-                for start in range(0, len(frames), 256):
-                    sel = frames[start:start + 256]
-                    frame, point, dist = self._near_pairs(angles[sel])
-                    hit = dist < PAINT_DISTANCE_M
-                    np.minimum.at(first, point[hit], t[sel][frame[hit]])
-            self._first_contact = first
-        return self._first_contact
+        """(P,) the first time each hand point touched the object in a grasp (inf: never)."""
+        if self._grasp is None:
+            return np.full(self.hand.n_points if self.hand else 0, np.inf)
+        return _first_touch(*self._grasp) * self.duration_s
 
     def contact_accumulated(self, t_end: float | None = None) -> np.ndarray:
-        """(P,) bool: hand points that have been within 4 mm of the object up to t_end
+        """(P,) bool: hand points that have touched the object up to t_end
         (default: the whole take). A canonical take returns the paint of its grasp."""
         if self._paint_source is not None:
             return self._paint_source.contact_accumulated()
@@ -318,9 +278,9 @@ def _first_crossing(f: Callable[[np.ndarray], np.ndarray], n_items: int, grid: i
 
 def _closing_clearance(hand: HandModel, placed: np.ndarray, start: np.ndarray, cols: tuple[int, ...],
                        bones: tuple[int, ...], target: np.ndarray, sdf: SdfFn) -> Callable[[np.ndarray], np.ndarray]:
-    """Clearance (G,5) of each finger's checked segments, plus the allowed contact depth, when
+    """Clearance (G,5) of each finger's checked segments, plus the allowed press depth, when
     its DOF columns `cols` have gone a fraction s (G,5) of the way from `start` to `target`."""
-    checked = [np.flatnonzero(np.isin(hand.capsule_bone, [4 * f + k for k in bones])) for f in range(5)]
+    groups = [np.array([4 * f + k for k in bones]) for f in range(5)]
 
     def clearance(s: np.ndarray) -> np.ndarray:
         g = s.shape[0]
@@ -328,15 +288,16 @@ def _closing_clearance(hand: HandModel, placed: np.ndarray, start: np.ndarray, c
         for c in cols:
             fingers[:, :, c] += s * (target[:, c] - start[:, c])
         angles = np.concatenate([np.repeat(placed[None, :6], g, axis=0), fingers.reshape(g, 20)], axis=1)
-        a, b, r = hand.capsules(angles)
-        d = capsule_distance(a, b, r, sdf)
-        return np.stack([d[:, idx].min(axis=1) for idx in checked], axis=1) + CONTACT_DEPTH_M
+        return hand.clearance(angles, groups, sdf) + PRESS_DEPTH_M
 
     return clearance
 
 
-def _grasp_keyframes(hand: HandModel, obj: SimObject, pose: Pose, duration_s: float, seed: int,
-                     table_top_z: float) -> _Keyframes:
+@functools.lru_cache(maxsize=16)
+def _grasp_poses(hand: HandModel, obj: SimObject, seed: int, table_top_z: float) -> np.ndarray:
+    """The grasp's keyframe poses (K,26) on _GRASP_TIMELINE, planned once per process: a canonical
+    take plans its grasp again for the paint, and the timeline only scales with the duration."""
+    pose = obj.resting_pose(table_top_z)
     rng = np.random.default_rng(seed)
     table_lo = np.array([-_TABLE_HALF, -_TABLE_HALF, -1.0])
     table_hi = np.array([_TABLE_HALF, _TABLE_HALF, table_top_z])
@@ -360,14 +321,13 @@ def _grasp_keyframes(hand: HandModel, obj: SimObject, pose: Pose, duration_s: fl
 
     # Descent: bisection on the distance travelled down until the palm is PALM_GAP_M away
     # (or a pre-shaped finger would come closer than _APPROACH_GAP_M).
-    a0, b0, r = hand.capsules(preshape)
-    palm = hand.capsule_finger < 0
+    skin, _ = hand.surface_points(preshape, hand.proxy, normals=False)
+    palm = hand.surface_bone[hand.proxy] % 4 == 0
     reach = _APPROACH_HEIGHT_M + 2 * obj.radius
     down = np.array([0.0, 0.0, -1.0])
 
     def clearance(s: np.ndarray) -> np.ndarray:
-        shift = (s.ravel() * reach)[:, None, None] * down
-        d = capsule_distance(a0 + shift, b0 + shift, r, scene_sdf)
+        d = scene_sdf(skin + (s.ravel() * reach)[:, None, None] * down)
         c = np.minimum(d[:, palm].min(axis=1) - PALM_GAP_M, d[:, ~palm].min(axis=1) - _APPROACH_GAP_M)
         return c.reshape(s.shape)
 
@@ -387,16 +347,30 @@ def _grasp_keyframes(hand: HandModel, obj: SimObject, pose: Pose, duration_s: fl
             current[:, c] += s_star * (target[:, c] - current[:, c])
         pose_now = np.concatenate([placed[:6], current.ravel()])
         stages.append(pose_now)
-        a, b, r = hand.capsules(pose_now)
-        gap = capsule_distance(a, b, r, scene_sdf)
+        gap = hand.clearance(pose_now[None], [np.array([b]) for b in range(20)], scene_sdf)[0]
         for f in np.flatnonzero((s_star > 0) & (s_star < 1)):
-            own = [k for k in bones if 4 * f + k in hand.capsule_bone]
-            nearest = min(own, key=lambda k: gap[hand.capsule_bone == 4 * f + k].min())
-            touching[f] = nearest
+            touching[f] = min(bones, key=lambda k: gap[4 * f + k])
 
-    keys = [preshape, *stages, stages[-1], *stages[-2::-1], preshape]
-    times = np.array(_GRASP_TIMELINE) * duration_s
-    return _Keyframes(times, np.array(keys))
+    poses = np.array([preshape, *stages, stages[-1], *stages[-2::-1], preshape])
+    poses.setflags(write=False)
+    return poses
+
+
+@functools.lru_cache(maxsize=16)
+def _first_touch(hand: HandModel, obj: SimObject, seed: int, table_top_z: float) -> np.ndarray:
+    """(P,) the fraction of a grasp's timeline at which each skin vertex first touches the object
+    (inf: never), sampled on a fixed grid of the timeline, so that it does not depend on the
+    duration chosen for the take."""
+    keys = _Keyframes(np.array(_GRASP_TIMELINE), _grasp_poses(hand, obj, seed, table_top_z))
+    s = np.linspace(0.0, 1.0, _PAINT_SAMPLES)
+    angles = keys(s)
+    # holds repeat a pose exactly: measure each distinct pose once
+    moved = np.flatnonzero(np.r_[True, np.any(angles[1:] != angles[:-1], axis=1)])
+    frame, point = hand.contact(angles[moved], obj, obj.resting_pose(table_top_z))
+    first = np.full(hand.n_points, np.inf)
+    np.minimum.at(first, point, s[moved][frame])
+    first.setflags(write=False)
+    return first
 
 
 def _canonical_pose(hand: HandModel) -> np.ndarray:
@@ -440,8 +414,8 @@ def make_motion(kind: str, hand: HandModel | None, obj: SimObject | None, durati
     if kind == "hand":
         return Motion(kind, duration_s, hand, None, None, _hand_routine(hand, duration_s, seed))
     if kind == "grasp":
-        keys = _grasp_keyframes(hand, obj, pose, duration_s, seed, table_top_z)
-        return Motion(kind, duration_s, hand, obj, pose, keys)
+        keys = _Keyframes(np.array(_GRASP_TIMELINE) * duration_s, _grasp_poses(hand, obj, seed, table_top_z))
+        return Motion(kind, duration_s, hand, obj, pose, keys, grasp=(hand, obj, seed, table_top_z))
     still = _canonical_pose(hand)
     keys = _Keyframes(np.array([0.0, duration_s]), np.stack([still, still]))
     source = make_motion("grasp", hand, obj, duration_s, seed, table_top_z) if obj is not None else None

@@ -6,7 +6,7 @@ import dataclasses
 
 from manus_core.errors import SessionError
 from manus_core.rig_config import RigConfig
-from rig.sim.hand import SUBJECTS
+from rig.sim.hand import SUBJECTS, subject_shape
 from rig.sim.objects import OBJECTS
 
 
@@ -22,7 +22,8 @@ def with_sim_subject(rig: RigConfig, *, obj: str | None = None, paint: bool | No
         raise SessionError(f"{rig.source}: the simulated cube has no object {changes['object']!r} "
                            f"(known: {', '.join(OBJECTS)})")
     if "subject" in changes:
-        if changes["subject"] not in SUBJECTS:
+        if not changes["subject"].endswith(".toml") and changes["subject"] not in SUBJECTS:
             raise SessionError(f"{rig.source}: the simulated cube has no subject {changes['subject']!r} "
-                               f"(known: {', '.join(SUBJECTS)})")
+                               f"(known: {', '.join(SUBJECTS)}, or a subject file NAME.toml)")
+        subject_shape(changes["subject"])   # a subject file with anything impossible fails here
     return dataclasses.replace(rig, sim=dataclasses.replace(rig.sim, **changes))

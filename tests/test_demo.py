@@ -20,6 +20,8 @@ from manus_core.ground_truth import GroundTruth
 from manus_core.rig_config import rig_to_toml
 from rig.sim.subject import with_sim_subject
 
+# the Gaussian hand's least lead over the template that both seeds must keep
+MARGIN = 1.03
 ARGS = ["--cameras", "12", "--resolution", "320x180", "--fps", "20", "--views", "3,6,all", "--iterations", "300"]
 
 
@@ -81,12 +83,22 @@ def test_more_views_give_better_contacts(demo):
     assert views[0] < views[1] < views[2], views
 
 
-def test_gaussian_hand_beats_the_template(demo):
-    """Measured 0.330 against 0.321. The simulated hand is capsules on the same skeleton as the
-    template, within a millimetre of it for this subject, so the margin is small; it was 0.309
-    against 0.321 while contact was drawn with the surfels' learned opacities (docs/contacts.md)."""
-    _, summary, _ = demo
-    assert summary["contact_iou"] > summary["baseline_iou"]
+@pytest.fixture(scope="module")
+def second_seed(tmp_path_factory):
+    """The same session with another seed (cameras, clocks and grasp drawn anew), all cameras only."""
+    out = tmp_path_factory.mktemp("demo") / "seed1"
+    args = [*ARGS[:ARGS.index("--views")], "--views", "all", *ARGS[ARGS.index("--iterations"):], "--seed", "1"]
+    result = CliRunner().invoke(cli, ["demo", "-o", str(out), *args])
+    assert result.exit_code == 0, result.output
+    return json.loads((out / "summary.json").read_text())
+
+
+def test_gaussian_hand_beats_the_template(demo, second_seed):
+    """On the anatomical hand, over two seeds: measured 0.125 against 0.116 (+8 %) and 0.144 against
+    0.130 (+11 %). On the capsule hand it was 0.330 against 0.321: the template's own class.
+    docs/contacts.md has the full comparison and what limits the margin."""
+    for summary in (demo[1], second_seed):
+        assert summary["contact_iou"] > MARGIN * summary["baseline_iou"], summary
 
 
 def test_commands_on_the_demo_session(demo, tmp_path):

@@ -10,10 +10,12 @@ from click.testing import CliRunner
 
 from manus_capture.cli import cli
 from manus_capture.template import capsule_template
+from manus_core.errors import SessionError
 from manus_core.ground_truth import GroundTruth
 from rig.layouts import make_rig
 from rig.sim.cube import SimulatedCube
 from rig.sim.hand import SUBJECTS, capsule_fit, load_subject, make_hand, subject_toml
+from rig.sim.subject import with_sim_subject
 
 
 @pytest.mark.parametrize("name", SUBJECTS)
@@ -114,3 +116,14 @@ def test_a_subject_file_makes_a_hand(tmp_path):
 
     # measured 9.1 cm against 7.1 cm: the sides move out by 30 % of their distance from the middle
     assert wide.subject == "wide" and palm_span(wide) > palm_span(average) + 0.008
+
+
+def test_an_unknown_object_lists_the_known_ones(tmp_path):
+    result = CliRunner().invoke(cli, ["demo", "-o", str(tmp_path / "out"), "--object", "cup"])
+    assert result.exit_code == 2 and "'cup'" in result.output
+    assert all(name in result.output for name in ("mug", "box", "sphere"))
+    # record and protocol take it through the rig: one line naming the rig file and the choices
+    with pytest.raises(SessionError, match=r"no object 'cup' \(known: box, mug, sphere\)"):
+        with_sim_subject(make_rig("cube53", cameras=6), obj="cup")
+    with pytest.raises(SessionError, match=r"no subject 's9' \(known: s01, s02, s03"):
+        with_sim_subject(make_rig("cube53", cameras=6), subject="s9")

@@ -65,8 +65,9 @@ class HandModel:
     """One subject's skin mesh on its skeleton.
 
     Attributes: skeleton, subject, shape (HandShape), rest (RestHand), faces (T,3),
-    surface_rest (V,3), surface_normal_rest (V,3), surface_bone (V,) the heaviest bone,
-    surface_region (V,), surface_palmar (V,) bool, vertex_albedo (V,3) RGB, skin_albedo (3,).
+    surface_rest (V,3), surface_normal_rest (V,3), weights (V,20) of blend skinning, surface_bone
+    (V,) the heaviest bone, surface_region (V,), surface_palmar (V,) bool, vertex_albedo (V,3) RGB,
+    skin_albedo (3,), proxy (indices of vertices about 2 mm apart, for grasp planning).
     """
 
     def __init__(self, shape: HandShape) -> None:
@@ -124,7 +125,7 @@ class HandModel:
     def surface_points(self, angles: np.ndarray, index: np.ndarray | None = None,
                        normals: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Posed vertices and normals (...,V,3) for angles (...,26), of the vertices `index` only
-        when given (no normals unless asked for); no contact with anything."""
+        when given (None for the normals with normals=False); no contact with anything."""
         rot, trans = self.skeleton.bone_transforms(np.asarray(angles, dtype=np.float64))
         sel = slice(None) if index is None else index
         return blend(self.weights[sel], rot, trans, self.surface_rest[sel],

@@ -16,10 +16,6 @@ import numpy as np
 
 Pose = tuple[np.ndarray, np.ndarray]
 
-# Rays per block in ray_capsules / sdf_capsules: a block is N_block x M pair arrays, so
-# 16k x 40 capsules stays around 5 MB per temporary.
-_BLOCK = 16384
-
 
 def _float(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x)
@@ -119,83 +115,6 @@ def _segment_closest(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a + s[..., None] * ab
 
 
-def _ray_end_spheres(od: np.ndarray, dd: np.ndarray, oo: np.ndarray, o: np.ndarray, d: np.ndarray,
-                     c: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Nearer positive root (n, M) of |o - c + t d| = r for every ray and centre c (M,3), given the
-    per-ray products od = o.d, dd = d.d and oo = o.o as (n, 1) columns."""
-    dot_d = od - (d @ c.T)
-    norm2 = oo - 2 * (o @ c.T) + np.einsum("mk,mk->m", c, c)
-    disc = dot_d * dot_d - dd * (norm2 - r * r)
-    t = (-dot_d - np.sqrt(np.maximum(disc, 0.0))) / dd
-    return np.where((disc >= 0) & (t > 0), t, np.inf)
-
-
-def _ray_capsules_block(o: np.ndarray, d: np.ndarray, a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """t (n, M) of each ray with each capsule. The first entry into a capsule is the first entry
-    into its cylinder side (within the segment's span) or into either end sphere. Every (n, M)
-    term is a dot product expanded into matrix products: no (n, M, 3) temporaries."""
-    ba = b - a                                                  # (M,3)
-    baba = np.einsum("mk,mk->m", ba, ba)
-    dd = np.einsum("nk,nk->n", d, d)[:, None]
-    od = np.einsum("nk,nk->n", o, d)[:, None]
-    oo = np.einsum("nk,nk->n", o, o)[:, None]
-    bard = (d @ ba.T)
-    baoa = (o @ ba.T) - np.einsum("mk,mk->m", a, ba)
-    rdoa = od - (d @ a.T)
-    oaoa = oo - 2 * (o @ a.T) + np.einsum("mk,mk->m", a, a)
-    qa = baba * dd - bard * bard
-    qb = baba * rdoa - baoa * bard
-    qc = baba * oaoa - baoa * baoa - r * r * baba
-    disc = qb * qb - qa * qc
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_side = (-qb - np.sqrt(np.maximum(disc, 0.0))) / qa
-    y = baoa + t_side * bard
-    side_ok = (disc >= 0) & (qa > 1e-20 * baba) & (t_side > 0) & (y >= 0) & (y <= baba)
-    t = np.minimum(np.where(side_ok, t_side, np.inf), _ray_end_spheres(od, dd, oo, o, d, a, r))
-    return np.minimum(t, _ray_end_spheres(od, dd, oo, o, d, b, r))
-
-
-def ray_capsules(o: np.ndarray, d: np.ndarray, a: np.ndarray, b: np.ndarray,
-                 r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest hit over a union of capsules (segments a-b (M,3) with radii r (M,)).
-
-    Returns (t (N,), index (N,) of the capsule hit or -1, outward normal (N,3)). Rays are first
-    culled against one bounding sphere of all capsules, then handled in blocks so that memory
-    stays bounded for hundreds of thousands of rays.
-    """
-    o, d = _float(o), _float(d)
-    n = len(o)
-    t = np.full(n, np.inf, dtype=o.dtype)
-    index = np.full(n, -1, dtype=np.int64)
-    normal = np.zeros((n, 3), dtype=o.dtype)
-    if n == 0 or len(a) == 0:
-        return t, index, normal
-    # Float64 about the capsules' centre whatever the input: the expanded dot products cancel.
-    a, b, r = (np.asarray(x, dtype=np.float64) for x in (a, b, r))
-    ends = np.concatenate([a, b])
-    center = 0.5 * (ends.min(axis=0) + ends.max(axis=0))
-    a, b = a - center, b - center
-    bound = np.max(np.linalg.norm(np.concatenate([a, b]), axis=1) + np.concatenate([r, r]))
-    oc = o.astype(np.float64) - center
-    dd = np.einsum("nk,nk->n", d, d)
-    bc = np.einsum("nk,nk->n", oc, d)
-    near = (bc * bc - dd * (np.einsum("nk,nk->n", oc, oc) - bound * bound)) >= 0
-    candidates = np.flatnonzero(near)
-    for start in range(0, len(candidates), _BLOCK):
-        rows = candidates[start:start + _BLOCK]
-        ob, db = oc[rows], d[rows].astype(np.float64)
-        tt = _ray_capsules_block(ob, db, a, b, r)
-        k = np.argmin(tt, axis=1)
-        tk = tt[np.arange(len(rows)), k]
-        hit = np.isfinite(tk)
-        rows, k, tk = rows[hit], k[hit], tk[hit]
-        p = ob[hit] + tk[:, None] * db[hit]
-        n_out = p - _segment_closest(p, a[k], b[k])
-        normal[rows] = n_out / np.maximum(np.linalg.norm(n_out, axis=1, keepdims=True), 1e-30)
-        t[rows], index[rows] = tk, k
-    return t, index, normal
-
-
 def _norm3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     # Component-wise: reductions over a trailing axis of length 3 are slow in numpy.
     return np.sqrt(x * x + y * y + z * z)
@@ -230,19 +149,6 @@ def capsule_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray, r: np.ndarray
     q = _float(p)[:, None, :]
     a, b, r = (np.asarray(x, dtype=q.dtype) for x in (a, b, r))
     return np.linalg.norm(q - _segment_closest(q, a[None], b[None]), axis=-1) - r
-
-
-def sdf_capsules(p: np.ndarray, a: np.ndarray, b: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance (N,) to a union of capsules and the index (N,) of the nearest capsule."""
-    p = _float(p)
-    dist = np.empty(len(p), dtype=p.dtype)
-    index = np.empty(len(p), dtype=np.int64)
-    for start in range(0, len(p), _BLOCK):
-        dd = capsule_distances(p[start:start + _BLOCK], a, b, r)
-        k = np.argmin(dd, axis=1)
-        dist[start:start + _BLOCK] = dd[np.arange(len(dd)), k]
-        index[start:start + _BLOCK] = k
-    return dist, index
 
 
 def capsule_surface(a: np.ndarray, b: np.ndarray, r: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:

@@ -47,6 +47,7 @@ from manus_core.rotations import rotation_angle_deg
 from manus_core.take import Take
 from rig.layouts import make_rig
 from rig.record import RecordOptions, record_take
+from rig.sim.hand import subject_shape
 from rig.sim.subject import with_sim_subject
 
 from .evaluate import MIN_PAINT_PX
@@ -361,6 +362,8 @@ def run_demo(out: Path, config: DemoConfig = DemoConfig(), say: Callable[[str], 
     """Run every stage into `out` and return the summary (also DIR/summary.json and report.html)."""
 
     out = Path(out)
+    # an unknown subject or an impossible subject file fails here, before anything is written
+    subject_shape(config.subject)
     if (out / "summary.json").exists() and not force:
         raise DemoError(f"{out}: holds a finished demo (summary.json); use --force to run it again")
     demo = Demo(out, config, say)

@@ -14,7 +14,7 @@ from manus_core.ground_truth import LABEL_HAND, LABEL_OBJECT, LABEL_PAINT, LABEL
 from rig.layouts import make_rig
 from rig.sim import shapes
 from rig.sim.cube import true_cameras
-from rig.sim.mesh import PosedMesh, icosphere, vertex_normals
+from rig.sim.mesh import PosedMesh, icosphere
 from rig.sim.objects import FACET_ERROR, OBJECTS, make_object
 from rig.sim.render import Renderer, _Moving, shade
 from rig.sim.world import World
@@ -204,7 +204,7 @@ class BallHand:
         self.posed += 1
         vertices = np.asarray(angles[:3]) + self.radius * self.unit
         painted = self.unit[:, 2] > 0
-        return PosedMesh(vertices, self.faces, vertex_normals(vertices, self.faces),
+        return PosedMesh(vertices, self.faces, self.unit,   # a ball's normals point out from its centre
                          np.where(painted[:, None], self.PAINT, self.SKIN).astype(np.float32),
                          np.where(painted, LABEL_PAINT, LABEL_HAND).astype(np.uint8))
 

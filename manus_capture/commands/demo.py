@@ -8,8 +8,6 @@ import click
 
 from manus_capture.demo import DemoConfig, run_demo
 from manus_capture.report import text_table
-from manus_core.errors import SessionError
-from rig.sim.hand import subject_shape
 
 
 def _views(text: str) -> tuple[int, ...]:
@@ -22,14 +20,6 @@ def _views(text: str) -> tuple[int, ...]:
     return values
 
 
-def _subject(value: str) -> str:
-    try:
-        subject_shape(value)
-    except SessionError as e:
-        raise click.BadParameter(str(e), param_hint="--subject") from None
-    return value
-
-
 @click.command("demo", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Folder for the session, calibration, dataset, models and report.")
@@ -38,7 +28,7 @@ def _subject(value: str) -> str:
 @click.option("--resolution", default="320x180", show_default=True, help="Camera resolution WxH.")
 @click.option("--fps", type=click.FloatRange(1, 120), default=30.0, show_default=True)
 @click.option("--object", "obj", type=click.Choice(["mug", "box", "sphere"]), default="mug", show_default=True)
-@click.option("--subject", default="s01", show_default=True, callback=lambda c, p, v: _subject(v),
+@click.option("--subject", default="s01", show_default=True,
               help="A simulated subject (s01, s02, s03) or a subject file NAME.toml (docs/simulation.md).")
 @click.option("--views", "views", default="5,10,20,all", show_default=True, callback=lambda c, p, v: _views(v),
               help="Camera counts of the ablation (models rebuilt from that many cameras).")

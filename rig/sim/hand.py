@@ -101,15 +101,16 @@ class HandModel:
             f, k = b // 4, b % 4 - 1
             sel = (bone == b) & (part_kind != "forearm")
             axes = REST_FRAMES[f]
-            side = np.where(n[sel] @ axes[:, 2] < 0, "palmar", "dorsal")
-            names = np.char.add(f"{FINGERS[f]}_{SEGMENTS[FINGERS[f]][k]}_", side)
+            segment = f"{FINGERS[f]}_{SEGMENTS[FINGERS[f]][k]}"
+            here = np.where(n[sel] @ axes[:, 2] < 0, REGION_NAMES.index(f"{segment}_palmar"),
+                            REGION_NAMES.index(f"{segment}_dorsal"))
             if k == 2:
                 q = (self.surface_rest[sel] - j[b]) @ axes
                 length = float(np.linalg.norm(j[b + 1] - j[b]))
-                names = np.where(n[sel] @ axes[:, 1] > _TIP_COS, f"{FINGERS[f]}_tip", names)
+                here = np.where(n[sel] @ axes[:, 1] > _TIP_COS, REGION_NAMES.index(f"{FINGERS[f]}_tip"), here)
                 w = self.rest.half_width(f, 2)[1]
                 nail[sel] = (n[sel] @ axes[:, 2] > 0.3) & (q[:, 1] > 0.4 * length) & (np.abs(q[:, 0]) < 0.75 * w)
-            region[sel] = [REGION_NAMES.index(x) for x in names]
+            region[sel] = here
         return region, nail
 
     def _albedo(self, nail: np.ndarray) -> np.ndarray:

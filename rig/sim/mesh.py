@@ -24,16 +24,6 @@ class PosedMesh:
     label: np.ndarray
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit area-weighted vertex normals (V,3) of a mesh whose faces turn counter-clockwise
-    seen from outside."""
-    tri = vertices[faces]
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    corners = faces.ravel()
-    normals = np.stack([np.bincount(corners, np.repeat(face_n[:, c], 3), len(vertices)) for c in range(3)], axis=1)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
-
-
 # the icosahedron: 12 vertices (0, +-1, +-phi) cyclically, 20 faces counter-clockwise from outside
 _PHI = (1 + 5 ** 0.5) / 2
 _ICOSAHEDRON_VERTICES = np.array([

@@ -12,6 +12,8 @@
     masks = api.segment_take("s01/grasp", cams, "s01/calib")                      # -> Segmentation
     inputs = api.ModelInputs.prepare(cams, "DATASET.h5", "s01/hand", "s01/object", "s01/calib")
     models = inputs.train(range(len(cams)))                                       # -> TrainedModels
+    fit = api.refine_take("DATASET.h5", "s01/grasp", "s01/grasp", cams, models.hand)   # -> RefineResult
+    api.write_refined("DATASET.h5", "s01/grasp", fit, {})                          # joint_angles_refined
     maps = api.model_contacts(models.hand, angles, models.object)                 # -> ContactMaps
     scores, _ = api.score_contacts(models.hand, pose, maps.accumulated, cams, paint, views)  # -> Scores
 
@@ -37,6 +39,7 @@ from dataset_tools.undistort import undistort_points
 from manus_capture.builder import ModelInputs, TrainedModels
 from manus_capture.contacts import ContactMaps, model_contacts, write_contacts
 from manus_capture.evaluate import Scores, canonical_pose, pick_views, score_contacts
+from manus_capture.refine import RefineOptions, RefineResult, refine_take, write_refined
 from manus_capture.splat import rasterize
 from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
 from manus_capture.template import capsule_template
@@ -66,6 +69,8 @@ __all__ = [
     "segment_take", "Segmentation", "write_masks",
     # 6. reconstruct: the object's Gaussians and MANUS-Hand
     "ModelInputs", "TrainedModels", "save_checkpoint", "load_checkpoint",
+    # 6b. refine: the poses against the images through MANUS-Hand
+    "refine_take", "RefineOptions", "RefineResult", "write_refined",
     # 7. contacts and 8. evaluate
     "model_contacts", "ContactMaps", "write_contacts", "canonical_pose", "pick_views", "score_contacts", "Scores",
     "capsule_template",

@@ -36,6 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stats": ("stats", "Summarize a dataset file: coverage, errors, grip aperture."),
     "segment": ("segment", "Hand and object masks, and the green-paint contact truth."),
     "reconstruct": ("reconstruct", "Train Gaussian models of the object and the hand."),
+    "refine": ("refine", "Refine the hand poses of takes against their images through MANUS-Hand."),
     "contacts": ("contacts", "Hand-object contacts from the Gaussian models."),
     "evaluate": ("evaluate", "Score estimated contacts against the paint ground truth."),
     "demo": ("demo", "Run the whole pipeline on the simulated rig and report every stage."),

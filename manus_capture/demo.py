@@ -2,7 +2,8 @@
 
 `run_demo` records a session (calibration, hand, object, grasp and canonical takes) with the
 simulated cube, then runs every stage the way a lab would on real recordings: sync reports,
-calibrate, annotate, segment, reconstruct (object and MANUS-Hand), contacts and evaluate. Each
+calibrate, annotate, segment, reconstruct (object and MANUS-Hand), refine (the poses against the
+images), contacts and evaluate. Each
 stage is scored against ground_truth.h5, and the camera ablation retrains the models on 5, 10,
 20 and all cameras. Outputs in DIR: session/, calib/, DATASET.h5, models/, images/,
 summary.json and report.html.
@@ -34,6 +35,7 @@ from manus_capture.evaluate import (
     score_contacts,
     spread_cameras,
 )
+from manus_capture.refine import RefineOptions, refine_take, write_refined
 from manus_capture.report import ablation_png, keypoint_overlay, mask_comparison, write_html
 from manus_capture.splat.checkpoint import save_checkpoint
 from manus_capture.splat.takes import truth_cameras
@@ -44,6 +46,7 @@ from manus_core.errors import DemoError
 from manus_core.fileio import write_atomic
 from manus_core.ground_truth import GroundTruth
 from manus_core.rotations import rotation_angle_deg
+from manus_core.skeleton import HandSkeleton
 from manus_core.take import Take
 from rig.layouts import make_rig
 from rig.record import RecordOptions, record_take
@@ -76,6 +79,7 @@ class DemoConfig:
     object_iterations: int = 400
     hand_iterations: int = 400
     hand_frames: int = 20
+    refine_iterations: int = 20                     # refine's second stage (rendering MANUS-Hand)
     scale: float = 1.0
     tau: float = 0.004
     seed: int = 0
@@ -172,14 +176,19 @@ class Demo:
         data = read_dataset(self.dataset)
         grasp = data[take_key(self.take["grasp"])]
         truth = self._truth_at_groups(self.take["grasp"], grasp.frame_ns)
-        fitted = grasp.fitted_joints()
         tri = np.linalg.norm(grasp.keypoints3d - truth["joints3d"], axis=-1)
-        fit = np.linalg.norm(fitted - truth["joints3d"], axis=-1)
-        ang = np.degrees(grasp.joint_angles[:, 6:] - truth["joint_angles"][:, 6:])
+        fitted, angles = self._pose_errors(grasp.bone_lengths, grasp.joint_angles, truth)
         return {"frames": len(grasp.frame_ns), "triangulated_mpjpe_mm": 1000 * float(np.nanmean(tri)),
-                "fitted_mpjpe_mm": 1000 * float(np.nanmean(fit)),
-                "finger_angle_rms_deg": float(np.sqrt(np.nanmean(ang ** 2))),
+                "fitted_mpjpe_mm": fitted, "finger_angle_rms_deg": angles,
                 "bone_length_err_mm": 1000 * float(np.abs(grasp.bone_lengths - truth["bone_lengths"]).max())}
+
+    @staticmethod
+    def _pose_errors(bone_lengths: np.ndarray, angles: np.ndarray, truth: dict) -> tuple[float, float]:
+        """(fitted joints' mean error in mm, finger angles' RMS error in degrees) against the truth."""
+        fitted = HandSkeleton(bone_lengths).forward(angles)
+        fit = np.linalg.norm(fitted - truth["joints3d"], axis=-1)
+        ang = np.degrees(angles[:, 6:] - truth["joint_angles"][:, 6:])
+        return 1000 * float(np.nanmean(fit)), float(np.sqrt(np.nanmean(ang ** 2)))
 
     def _truth_at_groups(self, take: Path, frame_ns: np.ndarray) -> dict:
         gt = GroundTruth.of_take(take)
@@ -192,11 +201,12 @@ class Demo:
         rig = load_cameras(self.calib)
         background, obj = self.take["calibration"], self.take["object"]
         metrics = {}
-        for kind in ("object", "hand", "canonical"):
+        # the hand and grasp takes' masks train MANUS-Hand and refine the grasp's poses
+        for kind in ("object", "hand", "grasp", "canonical"):
             result = segment_take(self.take[kind], rig, background, obj if kind != "hand" else None)
             write_masks(self.dataset, take_key(self.take[kind]), result, {"segmentation_background": str(background)})
             order = result.in_order(rig.ids)
-            if kind == "hand":
+            if kind in ("hand", "grasp"):
                 continue
             labels = GroundTruth.of_take(self.take[kind]).labels([0])[:, 0]
             if kind == "object":
@@ -232,6 +242,26 @@ class Demo:
                         metadata={"source": str(self.take["object"]), "eps2d": blur})
         return metrics
 
+    def refine(self) -> dict:
+        """The grasp and canonical takes' poses refined against their images through the hand
+        model just trained (manus_capture.refine); scored against the truth."""
+        c = self.config
+        options = RefineOptions(iterations=c.refine_iterations, eps2d=SURFACE_EPS2D)
+        metrics = {}
+        for kind in ("grasp", "canonical"):
+            key = take_key(self.take[kind])
+            result = refine_take(self.dataset, key, self.take[kind], self.rig, self.hand, options,
+                                 self.models / "hand.safetensors")
+            write_refined(self.dataset, key, result, {"demo": True})
+            if kind == "grasp":
+                ann = read_dataset(self.dataset)[key]
+                truth = self._truth_at_groups(self.take[kind], ann.frame_ns)
+                fitted, angles = self._pose_errors(ann.bone_lengths, result.angles, truth)
+                metrics.update(fitted_mpjpe_mm_refined=fitted, finger_angle_rms_deg_refined=angles,
+                               frames_refined=result.frames_refined, frames_diverged=result.frames_diverged,
+                               refine_frames_per_s=result.frames_refined / max(result.seconds, 1e-9))
+        return metrics
+
     def contacts(self) -> dict:
         """Contacts of the grasp take (filtered joint angles) against the object, into DATASET.h5;
         scored on the true contact of the simulated hand's surface."""
@@ -239,8 +269,7 @@ class Demo:
 
 
         key = take_key(self.take["grasp"])
-        grasp = read_dataset(self.dataset)[key]
-        self.grasp_angles = grasp.joint_angles
+        self.grasp_angles, _ = read_dataset(self.dataset).pose_angles(key)   # refined
         maps = model_contacts(self.hand, self.grasp_angles, self.object, self.config.tau)
         write_contacts(self.dataset, key, maps, {"contact_hand_model": str(self.models / "hand.safetensors"),
                                                  "contact_object_model": str(self.models / "object.safetensors")})
@@ -262,7 +291,7 @@ class Demo:
         the camera ablation (models retrained on fewer cameras)."""
 
         c = self.config
-        canonical = canonical_pose(read_dataset(self.dataset)[take_key(self.take["canonical"])].joint_angles)
+        canonical = canonical_pose(read_dataset(self.dataset).pose_angles(take_key(self.take["canonical"]))[0])
         views = pick_views(self.paint, c.eval_views)
         ours, pred = score_contacts(self.hand, canonical, self.maps.accumulated, self.rig, self.paint, views)
         true_paint = mask_scores(pred, self.true_paint[views], ours.cameras)
@@ -327,7 +356,7 @@ def pictures(demo: Demo, count: int = 3) -> list[tuple[str, str]]:
     hold = int(np.argmax(demo.maps.instant.sum(axis=1)))
     # the views that show the paint best see the hand's palm side, which does the grasping
     cams = [grasp.cameras.index(demo.rig.ids[v]) for v in demo.eval_views[:count]]
-    projected = demo.rig.project(grasp.fitted_joints()[hold])
+    projected = demo.rig.project(HandSkeleton(grasp.bone_lengths).forward(demo.grasp_angles[hold]))
     value, alpha = render_contacts(demo.hand, demo.grasp_angles[hold], demo.maps.accumulated, demo.rig)
     for c in cams:
         cam = grasp.cameras[c]
@@ -335,7 +364,7 @@ def pictures(demo: Demo, count: int = 3) -> list[tuple[str, str]]:
         rig_c = demo.rig.index(cam)
         _png(demo.images / f"keypoints_{cam}.png", keypoint_overlay(image, grasp.keypoints2d[hold, c], projected[rig_c]))
         out.append((f"images/keypoints_{cam}.png", f"grasp, camera {cam}: simulated detections (yellow) and the "
-                                                   "fitted 26-DOF hand projected (magenta)"))
+                                                   "fitted and refined 26-DOF hand projected (magenta)"))
         _png(demo.images / f"contact_{cam}.png", contact_image(value[rig_c], alpha[rig_c], image))
         out.append((f"images/contact_{cam}.png", f"grasp, camera {cam}: accumulated contact on the Gaussian hand "
                                                  "(yellow to red) at the firmest hold"))
@@ -369,12 +398,20 @@ def run_demo(out: Path, config: DemoConfig = DemoConfig(), say: Callable[[str], 
     demo = Demo(out, config, say)
     for name, fn in (("record", demo.record), ("sync", demo.sync), ("calibrate", demo.calibrate),
                      ("annotate", demo.annotate), ("segment", demo.segment), ("reconstruct", demo.reconstruct),
-                     ("contacts", demo.contacts), ("evaluate", demo.evaluate)):
+                     ("refine", demo.refine), ("contacts", demo.contacts), ("evaluate", demo.evaluate)):
         demo.stage(name, fn)
-    evaluation = demo.stages[-1].metrics
+    metrics = {s.name: s.metrics for s in demo.stages}
+    evaluation = metrics["evaluate"]
     stages = [{"name": s.name, "seconds": round(s.seconds, 2), "metrics": s.metrics} for s in demo.stages]
     demo.summary = {**{k: evaluation[k] for k in ("contact_iou", "contact_f1", "baseline_iou", "baseline_f1",
                                                    "views")},
+                    **{k: metrics["reconstruct"][k] for k in ("hand_psnr_mask_db", "hand_ssim", "object_psnr_mask_db",
+                                                              "object_ssim")},
+                    "finger_angle_rms_deg": metrics["annotate"]["finger_angle_rms_deg"],
+                    "finger_angle_rms_deg_refined": metrics["refine"]["finger_angle_rms_deg_refined"],
+                    "fitted_mpjpe_mm": metrics["annotate"]["fitted_mpjpe_mm"],
+                    "fitted_mpjpe_mm_refined": metrics["refine"]["fitted_mpjpe_mm_refined"],
+                    "refine_frames_diverged": metrics["refine"]["frames_diverged"],
                     "scores": {k: v.to_json() for k, v in demo.scores.items()},
                     "config": dataclasses.asdict(config),
                     "stages": stages, "seconds": round(sum(s.seconds for s in demo.stages), 1)}

@@ -215,7 +215,7 @@ class Dataset:
     """A DATASET.h5 opened for reading; takes are read on access.
 
     `takes` lists every take with any stage's results; `stages(key)` says which ("annotate",
-    "segment", "contacts"), `annotated` the takes that `ds[key]` can read."""
+    "segment", "contacts", "refine"), `annotated` the takes that `ds[key]` can read."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
@@ -267,6 +267,17 @@ class Dataset:
                                f"{', '.join(sorted(self._stages[key]))} (run annotate on it)")
         with _open(self.path) as f:
             return _read_group(f[key], key)
+
+    def pose_angles(self, key: str) -> tuple[np.ndarray, str]:
+        """The joint angles (T,26) the later stages use, and which they are: refine's
+        `joint_angles_refined` when the take has them, else annotate's filtered `joint_angles`."""
+        ann = self[key]
+        if "refine" in self._stages[key]:
+            with _open(self.path) as f:
+                refined = f[key]["joint_angles_refined"][()]
+            if refined.shape == ann.joint_angles.shape:
+                return refined, "joint_angles_refined"
+        return ann.joint_angles, "joint_angles"
 
     def _check_key(self, key: str) -> None:
         if key not in self.takes:

@@ -237,3 +237,7 @@ class MonitorError(InputError):
 class ReleaseError(InputError):
     """A MANUS/BRICS release folder (or an export into that layout) that cannot be read or
     written as asked; names the file or folder and what was looked for."""
+
+
+class RefineInputError(InputError):
+    """Pose refinement cannot run on the given input: names the files and the problem (exit code 2)."""

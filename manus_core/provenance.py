@@ -34,6 +34,7 @@ STAGE_ARRAYS: dict[str, tuple[str, ...]] = {
                  "flags"),
     "segment": ("masks", "paint"),
     "contacts": ("contacts",),
+    "refine": ("joint_angles_refined", "refine"),
 }
 
 

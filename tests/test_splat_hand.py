@@ -20,6 +20,7 @@ from manus_capture.splat.hand import (
     train_hand,
 )
 from manus_capture.splat.optimize import LearningRates
+from manus_capture.splat.synthetic import look_at
 from manus_capture.splat.trainer import Views
 from manus_core.skeleton import BONES
 
@@ -106,16 +107,6 @@ def test_hand_checkpoint_round_trip(tmp_path, hand):
     loaded = HandGaussians.from_checkpoint(gaussians, extra)
     angles = random_poses(1, hand.skeleton, torch.Generator().manual_seed(5))[0]
     assert torch.allclose(loaded.pose(angles)["means"], hand.pose(angles)["means"], atol=1e-6)
-
-
-def look_at(centre: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    z = (target - centre) / (target - centre).norm()
-    x = torch.linalg.cross(torch.tensor([0.0, 0.0, 1.0]), z)
-    x = x / x.norm()
-    R = torch.stack([x, torch.linalg.cross(z, x), z])
-    V = torch.eye(4)
-    V[:3, :3], V[:3, 3] = R, -R @ centre
-    return V
 
 
 def test_hand_model_learns_a_known_hand_and_renders_a_held_out_pose():

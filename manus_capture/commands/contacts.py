@@ -58,12 +58,13 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     if key not in data:
         raise EvaluateError(f"{dataset}: no take {key!r} (takes: {', '.join(data.takes) or 'none'})")
     ann = data[key]   # DatasetError, one line naming the take, when it has no annotation
-    angles = ann.joint_angles
+    angles, source = data.pose_angles(key)
+    click.echo(f"contacts: {key}: poses from {source}", err=True)
     annotation = data.provenance(key, "annotate")
     # the recording the poses came from: a later re-recording of the take makes these contacts stale
     inputs = {"take": None if annotation is None else annotation.get("take"),
               "hand_model_sha256": _sha256(hand_path), "object_model_sha256": _sha256(object_path),
-              "tau_m": tau, "soft": soft}
+              "tau_m": tau, "soft": soft, "angles": source}
     gaussians, extra, meta = load_checkpoint(hand_path)
     if meta.get("kind") != "hand":
         raise EvaluateError(f"{hand_path}: a {meta.get('kind')!r} checkpoint, not a hand")

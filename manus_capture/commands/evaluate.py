@@ -79,7 +79,7 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
         if key not in data:
             raise EvaluateError(f"{dataset}: no take {key!r} (takes: {', '.join(data.takes) or 'none'})")
     # DatasetError, one line naming the take, for a take without annotation
-    grasp_ann, canonical_ann = data[grasp], data[canonical]
+    grasp_ann = data[grasp]
     with h5py.File(dataset, "r") as f:
         if "paint/masks" not in f[canonical]:
             raise EvaluateError(f"{dataset}: take {canonical} has no paint/masks (run segment on it first)")
@@ -102,8 +102,11 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
         raise click.UsageError("--views needs --hand-take, --object-take and --background")
     for path in (hand_path, object_path):
         load_checkpoint(path)   # a broken checkpoint stops us now, not after the ablation's inputs
-    scoring = Scoring(grasp_ann.joint_angles, canonical_pose(canonical_ann.joint_angles), rig, paint,
-                      pick_views(paint, gt_views), tau, threshold)
+    grasp_angles, grasp_source = data.pose_angles(grasp)
+    canonical_angles, canonical_source = data.pose_angles(canonical)
+    click.echo(f"evaluate: poses of {grasp} from {grasp_source}, of {canonical} from {canonical_source}", err=True)
+    scoring = Scoring(grasp_angles, canonical_pose(canonical_angles), rig, paint, pick_views(paint, gt_views), tau,
+                      threshold)
     # the tasks' paths are absolute: a worker runs elsewhere
     hand, obj = str(hand_path.resolve()), str(object_path.resolve())
     models = {"gaussian": Checkpoints(obj, hand), "baseline": Checkpoints(obj, template_bones=grasp_ann.bone_lengths)}
@@ -122,7 +125,7 @@ def command(dataset: Path, grasp: str, canonical: str, calib: Path, hand_path: P
     ours, baseline = scores.pop("gaussian"), scores.pop("baseline")
     result = {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
               "baseline_f1": baseline.mean_f1, "gaussian": ours.to_json(), "baseline": baseline.to_json(),
-              "tau_m": tau, "threshold": threshold}
+              "tau_m": tau, "threshold": threshold, "angles": {grasp: grasp_source, canonical: canonical_source}}
     if counts:
         result["views"] = {c: scores[c].mean_iou for c in counts}
     if output is not None:

@@ -209,27 +209,35 @@ class HandGaussians(torch.nn.Module):
         return w / w.sum(-1, keepdim=True).clamp_min(1e-8)
 
     def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Posed centres (N,3), covariances (N,3,3) and blended linear maps A (N,3,3) for angles (26,)."""
+        """Posed centres (N,3), covariances (N,3,3), blended linear maps A (N,3,3) and weights (N,20)
+        for angles (26,); for angles (T,26) one of each per pose: (T,N,3), (T,N,3,3), (T,N,3,3)."""
         g = self.gaussians
         angles = torch.as_tensor(angles, dtype=g.means.dtype, device=g.means.device)
-        R, t = self.skeleton.bone_transforms(angles)  # (20,3,3), (20,3)
+        R, t = self.skeleton.bone_transforms(angles)  # (...,20,3,3), (...,20,3)
         w = self.skinning_weights()
-        A = torch.einsum("nb,bij->nij", w, R.to(w.dtype))
-        means = torch.einsum("nij,nj->ni", A, g.means) + w @ t.to(w.dtype)
-        covars = A @ g.covariances() @ A.transpose(1, 2)
+        A = torch.einsum("nb,...bij->...nij", w, R.to(w.dtype))
+        means = torch.einsum("...nij,nj->...ni", A, g.means) + torch.einsum("nb,...bj->...nj", w, t.to(w.dtype))
+        covars = A @ g.covariances() @ A.transpose(-1, -2)
         return {"means": means, "covars": covars, "A": A, "weights": w}
 
     def render(self, angles: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
                background: torch.Tensor | None = None, sh_degree: int | None = None, **kwargs):
-        """rasterize() of the hand posed by `angles` (26,) into C cameras."""
+        """rasterize() of the hand posed by `angles` into C cameras: (26,) one pose seen by every
+        camera, or (C,26) one pose per camera."""
+        return self.render_posed(self.pose(angles), viewmats, Ks, width, height, background, sh_degree, **kwargs)
+
+    def render_posed(self, posed: dict[str, torch.Tensor], viewmats: torch.Tensor, Ks: torch.Tensor, width: int,
+                     height: int, background: torch.Tensor | None = None, sh_degree: int | None = None, **kwargs):
+        """rasterize() of a pose() result: one pose for every camera ((N,...) tensors) or one per
+        camera ((C,N,...)), e.g. the frames of a take each in its own views, in one call."""
         g = self.gaussians
-        posed = self.pose(angles)
+        C = len(viewmats)
         R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
         centres = -torch.einsum("cji,cj->ci", R, t)
-        dirs_world = posed["means"][None] - centres[:, None]  # (C,N,3)
-        dirs = torch.einsum("nji,cnj->cni", posed["A"], dirs_world)  # A^T d: back to canonical
-        colours = eval_sh(g.sh_degree if sh_degree is None else sh_degree, g.sh[None].expand(len(viewmats), -1, -1, -1),
-                          dirs)
+        means = posed["means"] if posed["means"].dim() == 3 else posed["means"][None]
+        A = posed["A"] if posed["A"].dim() == 4 else posed["A"][None]
+        dirs = torch.einsum("cnji,cnj->cni", A.expand(C, -1, -1, -1), means - centres[:, None])  # A^T d: canonical
+        colours = eval_sh(g.sh_degree if sh_degree is None else sh_degree, g.sh[None].expand(C, -1, -1, -1), dirs)
         return rasterize(posed["means"], None, None, g.opacities, colours, viewmats, Ks, width, height,
                          background=background, covars=posed["covars"], **kwargs)
 

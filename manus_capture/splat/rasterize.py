@@ -58,7 +58,8 @@ def unpack_covars(covars: torch.Tensor) -> torch.Tensor:
 def project(means: torch.Tensor, covars: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
             width: int, height: int, near_plane: float = 0.01, far_plane: float = 1e10,
             eps2d: float = EPS2D) -> dict[str, torch.Tensor]:
-    """EWA projection of N Gaussians into C cameras.
+    """EWA projection of N Gaussians into C cameras: means (N,3) and covars (N,3,3), or per camera
+    (C,N,3) and (C,N,3,3) (e.g. a posed hand, one pose per camera).
 
     Returns means2d (C,N,2) pixels, conics (C,N,3) = the inverse 2D covariance as (a, b, c) of
     [[a, b], [b, c]], depths (C,N) camera z, extents (C,N,2) 3-sigma half-widths in pixels, and
@@ -67,7 +68,7 @@ def project(means: torch.Tensor, covars: torch.Tensor, viewmats: torch.Tensor, K
     """
     R = viewmats[:, :3, :3]
     t = viewmats[:, :3, 3]
-    xc = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]
+    xc = torch.einsum("cij,nj->cni" if means.dim() == 2 else "cij,cnj->cni", R, means) + t[:, None, :]
     x, y, z = xc.unbind(-1)
     valid = (z > near_plane) & (z < far_plane)
     z = torch.where(valid, z, torch.ones_like(z))  # keeps culled entries finite for autograd
@@ -87,7 +88,7 @@ def project(means: torch.Tensor, covars: torch.Tensor, viewmats: torch.Tensor, K
         torch.stack([zero, fy / z, -fy * yj / z], dim=-1),
     ], dim=-2)  # (C,N,2,3)
     M = J @ R[:, None]  # world -> pixel Jacobian
-    cov2d = M @ covars[None] @ M.transpose(-1, -2)
+    cov2d = M @ (covars[None] if covars.dim() == 3 else covars) @ M.transpose(-1, -2)
     a = cov2d[..., 0, 0] + eps2d
     b = cov2d[..., 0, 1]
     c = cov2d[..., 1, 1] + eps2d
@@ -337,11 +338,13 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
               backend: str = "auto", chunk_elements: int | None = None, return_meta: bool = False):
     """Render N Gaussians into C cameras: (rgb (C,H,W,D), alpha (C,H,W,1)) [, meta].
 
-    means (N,3); quats (N,4) w x y z, any norm; scales (N,3) (not log); opacities (N,) or (C,N) in
-    [0,1]; colors (N,D) or (C,N,D) values, or with `sh_degree` SH coefficients (N,K,3) or
-    (C,N,K,3); viewmats (C,4,4) world-to-camera (x_cam = R x + t); Ks (C,3,3) in pixels with
-    pixel centres at integer coordinates; background (D,) or (C,D) composited behind, black when
-    None. covars (N,3,3) or packed (N,6) replace quats and scales.
+    means (N,3), or (C,N,3) with covars (C,N,3,3): one set of centres per camera (the views of
+    several poses of an articulated model in one call); quats (N,4) w x y z, any norm; scales (N,3)
+    (not log); opacities (N,) or (C,N) in [0,1]; colors (N,D) or (C,N,D) values, or with
+    `sh_degree` SH coefficients (N,K,3) or (C,N,K,3); viewmats (C,4,4) world-to-camera
+    (x_cam = R x + t); Ks (C,3,3) in pixels with pixel centres at integer coordinates; background
+    (D,) or (C,D) composited behind, black when None. covars (N,3,3) or packed (N,6) replace quats
+    and scales.
 
     backend: "torch" (this module), "gsplat" (CUDA only) or "auto" (gsplat when it is installed
     and the inputs are on a CUDA device). chunk_elements bounds tiles x pixels x list length per
@@ -353,7 +356,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
     (0: not drawn), width, height, n_cameras and gaussian_ids (None: not packed); and depths,
     conics, visible (C,N) and n_isects.
     """
-    C, N = viewmats.shape[0], means.shape[0]
+    C, N = viewmats.shape[0], means.shape[-2]
+    if means.dim() == 3 and (means.shape[0] != C or covars is None):
+        raise ValueError(f"per-camera means {tuple(means.shape)} need one row per camera ({C}) and covars")
     if viewmats.shape != (C, 4, 4) or Ks.shape != (C, 3, 3):
         raise ValueError(f"viewmats must be (C,4,4) and Ks (C,3,3); got {tuple(viewmats.shape)}, {tuple(Ks.shape)}")
     if backend == "auto":
@@ -375,7 +380,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Ten
         coeffs = _per_camera(colors, C, N, "SH colors", 2)
         R, t = viewmats[:, :3, :3], viewmats[:, :3, 3]
         centres = -torch.einsum("cji,cj->ci", R, t)
-        cols = eval_sh(sh_degree, coeffs, means[None] - centres[:, None])
+        cols = eval_sh(sh_degree, coeffs, (means[None] if means.dim() == 2 else means) - centres[:, None])
     opac = _per_camera(opacities, C, N, "opacities", 0)
     D = cols.shape[-1]
 
@@ -417,10 +422,19 @@ def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmats, Ks, wid
     backgrounds = None
     if background is not None:
         backgrounds = background.expand(C, background.shape[-1]) if background.dim() == 1 else background
+    batched = means.dim() == 3  # per-camera centres: gsplat's batch axis, one camera per batch
+    if batched:
+        viewmats, Ks = viewmats[:, None], Ks[:, None]
+        opacities = opacities.expand(C, -1) if opacities.dim() == 1 else opacities
+        colors = colors.expand(C, *colors.shape) if colors.dim() == (2 if sh_degree is None else 3) else colors
+        backgrounds = None if backgrounds is None else backgrounds[:, None]
     rgb, alpha, meta = gsplat.rasterization(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane=near_plane,
         far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, tile_size=16, backgrounds=backgrounds,
         covars=covars, packed=False)
+    if batched:
+        rgb, alpha = rgb[:, 0], alpha[:, 0]
+        meta = {k: v[:, 0] if torch.is_tensor(v) and v.dim() >= 3 and v.shape[1] == 1 else v for k, v in meta.items()}
     if not return_meta:
         return rgb, alpha
     meta["visible"] = drawn(meta["radii"])

@@ -311,6 +311,21 @@ def test_api_reconstruct_contacts_evaluate(demo, tmp_path):
     assert abs(baseline.mean_iou - summary["baseline_iou"]) < 1e-6
 
 
+def test_api_refine(demo, tmp_path):
+    """refine_take and write_refined on the demo's canonical take: the refined angles go beside
+    annotate's, and the dataset then gives them to the later stages."""
+    out, _, _ = demo
+    dataset, key = tmp_path / "D.h5", "session/04-canonical1"
+    dataset.write_bytes((out / "DATASET.h5").read_bytes())
+    hand = HandGaussians.from_checkpoint(*api.load_checkpoint(out / "models" / "hand.safetensors")[:2])
+    fit = api.refine_take(dataset, key, out / "session" / "04-canonical1", api.load_cameras(out / "calib"), hand,
+                          api.RefineOptions(keypoint_iterations=20, iterations=2, eps2d=0.05))
+    assert isinstance(fit, api.RefineResult) and fit.frames_refined + fit.frames_diverged > 0
+    api.write_refined(dataset, key, fit, {"test": True})
+    angles, source = api.read_dataset(dataset).pose_angles(key)
+    assert source == "joint_angles_refined" and np.array_equal(angles, fit.angles, equal_nan=True)
+
+
 def test_true_calibration_ablation_feeds_the_simulators_cameras(demo, tmp_path):
     """--true-calibration, the one ablation that hands the simulator's intrinsics and poses to the
     pipeline: calibrate writes the take's true cameras instead of calibrating."""

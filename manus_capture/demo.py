@@ -263,7 +263,7 @@ class Demo:
         return metrics
 
     def contacts(self) -> dict:
-        """Contacts of the grasp take (filtered joint angles) against the object, into DATASET.h5;
+        """Contacts of the grasp take (refined joint angles) against the object, into DATASET.h5;
         scored on the true contact of the simulated hand's surface."""
         from scipy.spatial import cKDTree
 

@@ -22,7 +22,8 @@ from rig.sim.subject import with_sim_subject
 
 # the Gaussian hand's least lead over the template that both seeds must keep
 MARGIN = 1.03
-ARGS = ["--cameras", "12", "--resolution", "320x180", "--fps", "20", "--views", "3,6,all", "--iterations", "300"]
+ARGS = ["--cameras", "12", "--resolution", "320x180", "--fps", "20", "--views", "3,6,all", "--iterations", "300",
+        "--refine-iterations", "8"]
 
 
 @pytest.fixture(scope="module")
@@ -73,8 +74,9 @@ def test_stages_agree_with_the_simulators_truth(demo):
     rec = stage(summary, "reconstruct")
     assert rec["hand_psnr_heldout_poses_db"] > 24 and rec["object_psnr_heldout_views_db"] > 28, rec
     refine = stage(summary, "refine")
-    # keypoints, smoothness, silhouettes and colour through MANUS-Hand (docs/refine.md; the
-    # 24-camera demo: 5.24 -> 3.24 deg, 2.16 -> 1.50 mm)
+    # keypoints, smoothness, silhouettes and colour through MANUS-Hand (docs/refine.md; measured
+    # here 8.36 -> 4.69 deg and 3.06 -> 2.35 mm, seed 1 8.73 -> 4.90 deg; the 24-camera demo 5.24 ->
+    # 3.24 deg, 2.16 -> 1.50 mm)
     assert summary["finger_angle_rms_deg_refined"] < 0.85 * summary["finger_angle_rms_deg"], summary
     assert refine["fitted_mpjpe_mm_refined"] < ann["fitted_mpjpe_mm"], (refine, ann)
     for name in ("hand_psnr_mask_db", "object_psnr_mask_db", "finger_angle_rms_deg", "finger_angle_rms_deg_refined"):
@@ -85,8 +87,8 @@ def test_stages_agree_with_the_simulators_truth(demo):
 
 
 def test_more_views_give_better_contacts(demo):
-    """The camera ablation: models rebuilt from 3, 6 and all 12 cameras (measured: 0.051, 0.264,
-    0.330 IoU with surfels; 0.0, 0.109, 0.098 with the round Gaussians before)."""
+    """The camera ablation: models rebuilt from 3, 6 and all 12 cameras (measured on the anatomical
+    hand with refined poses: 0.008, 0.087, 0.159 IoU; on the capsule hand 0.051, 0.264, 0.330)."""
     _, summary, _ = demo
     views = [summary["views"][k] for k in ("3", "6", "12")]
     assert views[0] < views[1] < views[2], views
@@ -103,9 +105,10 @@ def second_seed(tmp_path_factory):
 
 
 def test_gaussian_hand_beats_the_template(demo, second_seed):
-    """On the anatomical hand, over two seeds: measured 0.125 against 0.116 (+8 %) and 0.144 against
-    0.130 (+11 %). On the capsule hand it was 0.330 against 0.321: the template's own class.
-    docs/contacts.md has the full comparison and what limits the margin."""
+    """On the anatomical hand with refined poses, over two seeds: measured 0.159 against 0.143 (+11 %)
+    and 0.191 against 0.173 (+10 %); before refinement 0.125 against 0.116 and 0.144 against 0.130.
+    On the capsule hand it was 0.330 against 0.321: the template's own class. docs/contacts.md has
+    the full comparison and what limits the margin."""
     for summary in (demo[1], second_seed):
         assert summary["contact_iou"] > MARGIN * summary["baseline_iou"], summary
 
@@ -153,7 +156,7 @@ def test_commands_on_the_demo_session(demo, tmp_path):
 
 def test_refine_command_on_a_perturbed_take(demo, tmp_path):
     """`refine` through the command line on the demo's grasp take, its filtered finger angles
-    perturbed by 6 deg RMS more: refinement takes them back below the unrefined angles' own
+    perturbed by 6 deg RMS more: refinement takes them back well below the unrefined angles' own
     error, annotate's angles stay as they were, and contacts says it uses the refined ones.
     Bad input: another subject's model, and a take without masks, exit code 2 naming them."""
     out, summary, _ = demo
@@ -183,10 +186,9 @@ def test_refine_command_on_a_perturbed_take(demo, tmp_path):
         refined = f[key]["joint_angles_refined"][()]
         np.testing.assert_array_equal(f[key]["joint_angles"][()], perturbed)
         assert f[key]["refine/loss"].shape == (len(frame_ns),)
-    # measured: 8.3 deg perturbed (the filter's 5.2 and the 6 added), 4.0 deg refined, the
-    # unrefined angles of the demo 5.0
-    assert rms(perturbed) > 7.5 and rms(refined) < min(5.0, summary["finger_angle_rms_deg"]), (rms(perturbed),
-                                                                                                rms(refined))
+    # measured: the filter's angles 8.35 deg off, perturbed 10.4, refined (5 image steps) 4.95
+    assert rms(perturbed) > 9.5 and rms(refined) < 0.7 * summary["finger_angle_rms_deg"], (rms(perturbed),
+                                                                                             rms(refined))
     result = runner.invoke(cli, ["contacts", str(dataset), "--take", key, "--hand", str(hand), "--object",
                                  str(out / "models" / "object.safetensors")])
     assert result.exit_code == 0 and "poses from joint_angles_refined" in result.output, result.output

@@ -34,14 +34,17 @@ def _views(text: str) -> tuple[int, ...]:
               help="Camera counts of the ablation (models rebuilt from that many cameras).")
 @click.option("--iterations", type=click.IntRange(50), default=400, show_default=True,
               help="Training iterations of each Gaussian model.")
+@click.option("--refine-iterations", type=click.IntRange(0), default=20, show_default=True,
+              help="Steps of refine's second stage (MANUS-Hand rendered into the views; docs/refine.md).")
 @click.option("--true-calibration", is_flag=True, help="Use the simulator's cameras instead of calibrating.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--force", is_flag=True, help="Run again into a folder that holds a finished demo.")
 def command(output: Path, cameras: int, resolution: str, fps: float, obj: str, subject: str,
-            views: tuple[int, ...], iterations: int, true_calibration: bool, seed: int, force: bool) -> None:
+            views: tuple[int, ...], iterations: int, refine_iterations: int, true_calibration: bool, seed: int,
+            force: bool) -> None:
     """Record a painted-object session on the simulated cube (calibration, hand, object, grasp and
-    canonical takes), run sync reports, calibrate, annotate, segment, reconstruct, contacts and
-    evaluate, and print every stage's error against ground truth. Writes OUTPUT/report.html and
+    canonical takes), run sync reports, calibrate, annotate, segment, reconstruct, refine, contacts
+    and evaluate, and print every stage's error against ground truth. Writes OUTPUT/report.html and
     OUTPUT/summary.json (contact IoU and F1 of the Gaussian hand and of the capsule baseline, and
     the camera ablation). Exit code 0 when every stage ran, 1 when one failed."""
 
@@ -50,8 +53,8 @@ def command(output: Path, cameras: int, resolution: str, fps: float, obj: str, s
     except ValueError:
         raise click.BadParameter(f"{resolution!r}: expected WxH, e.g. 320x180", param_hint="--resolution") from None
     config = DemoConfig(cameras=cameras, resolution=(w, h), fps=fps, object=obj, subject=subject, views=views,
-                        object_iterations=iterations, hand_iterations=iterations, true_calibration=true_calibration,
-                        seed=seed)
+                        object_iterations=iterations, hand_iterations=iterations, refine_iterations=refine_iterations,
+                        true_calibration=true_calibration, seed=seed)
     summary = run_demo(output, config, say=click.echo, force=force)
     click.echo(text_table(summary["stages"]))
     ablation = ", ".join(f"{k} cams {v:.3f}" for k, v in summary["views"].items())

@@ -48,7 +48,7 @@ def scene(frames: int, cameras: int, width: int, height: int, device: str) -> tu
     Ks = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]]).repeat(cameras, 1, 1).to(device)
     views = PoseViews.rendered(model, truth, viewmats, Ks, width, height, keypoint_noise_px=2.0, outlier_rate=0.1,
                                eps2d=SURFACE_EPS2D)
-    return model, truth, views.__class__(**{k: v.cpu() if torch.is_tensor(v) else v for k, v in vars(views).items()})
+    return model, truth, views
 
 
 def run(model, truth, views, options: RefineOptions, device: str) -> dict:

@@ -20,6 +20,7 @@ import h5py
 import numpy as np
 import torch
 
+from manus_capture.splat.takes import mask_cameras
 from manus_core.cameras import CameraRig, scale_intrinsics
 from manus_core.dataset import TakeAnnotation
 from manus_core.errors import RefineInputError
@@ -83,11 +84,12 @@ class PoseViews:
         uv = uv + keypoint_noise_px * torch.randn(uv.shape, generator=g)
         uv[torch.rand(uv.shape[:-1], generator=g) < outlier_rate] += outlier_px
         keypoints = torch.cat([uv, torch.ones(*uv.shape[:-1], 1)], -1)
+        # in host memory, as pose_views': refinement moves a chunk at a time to the model's device
+        Ks, viewmats = Ks.float().cpu(), viewmats.float().cpu()
         return cls(np.repeat(np.arange(T), C), np.tile(np.arange(C), T),
-                   (rgb.clamp(0, 1) * 255).round().to(torch.uint8), alpha[..., 0] > 0.5,
-                   torch.ones(T * C, height, width, dtype=torch.bool), Ks.repeat(T, 1, 1).float(),
-                   viewmats.repeat(T, 1, 1).float(), keypoints, Ks.float(), viewmats.float(),
-                   tuple(f"c{i}" for i in range(C)), np.ones(T, bool))
+                   (rgb.clamp(0, 1) * 255).round().to(torch.uint8).cpu(), (alpha[..., 0] > 0.5).cpu(),
+                   torch.ones(T * C, height, width, dtype=torch.bool), Ks.repeat(T, 1, 1), viewmats.repeat(T, 1, 1),
+                   keypoints, Ks, viewmats, tuple(f"c{i}" for i in range(C)), np.ones(T, bool))
 
 
 def viewmats_of(rig: CameraRig) -> torch.Tensor:
@@ -101,15 +103,15 @@ def mask_rows(dataset: Path, key: str, frame_ns: np.ndarray, cameras: list[str])
     """The row of masks/hand and masks/object of every annotation row (T,) (-1: none; segment
     --every leaves some out) and the masks' column of every camera."""
     with h5py.File(dataset, "r") as f:
-        group = f[key]
-        if "masks/hand" not in group or "masks/object" not in group:
+        if "masks/hand" not in f[key] or "masks/object" not in f[key]:
             raise RefineInputError(f"{dataset}: take {key} has no hand and object masks; run `manus-capture "
                                    "segment` on it first (refinement compares silhouettes)")
-        mask_cams = [c.decode() if isinstance(c, bytes) else str(c) for c in group.attrs["mask_cameras"]]
-        lookup = {int(t): i for i, t in enumerate(group["masks/frame_ns"][()])}
+        mask_ns = f[key]["masks/frame_ns"][()]
+    mask_cams = mask_cameras(dataset, key)   # also refuses masks of another recording than the annotation
     missing = [c for c in cameras if c not in mask_cams]
     if missing:
         raise RefineInputError(f"{dataset}: take {key} has no masks of cameras {', '.join(missing)}")
+    lookup = {int(t): i for i, t in enumerate(mask_ns)}
     return np.array([lookup.get(int(t), -1) for t in frame_ns]), [mask_cams.index(c) for c in cameras]
 
 

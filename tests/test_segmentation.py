@@ -81,6 +81,39 @@ def test_grasp_masks_against_truth(sim):
     assert hand >= 0.95 and obj >= 0.95, (hand, obj)
 
 
+def test_foreground_in_blocks_is_the_per_pixel_mask(sim):
+    """At 1280x720 the foreground is looked for in 4x4 blocks first and per pixel only around the
+    blocks that differ: the mask is the whole frame's per-pixel one, pixel for pixel, on every
+    view of both takes (fingers a few pixels wide at their tips included)."""
+    seen = 0
+    for images in (sim["grasp"], sim["canon"]):
+        for image, bg in zip(images, sim["backgrounds"]):
+            blocks = bg.foreground(image, min_area=8)
+            seen += blocks.any()
+            assert np.array_equal(blocks, bg.foreground(image, min_area=8, block=1))
+    assert seen >= N   # the hand is seen in most of the 2 x 6 views
+
+
+def test_distance_in_a_window_is_exact_near_the_mask():
+    """Carving reads a view's distance to its mask in a window around it: exact within
+    DISTANCE_PAD of the mask's box, and a lower bound (from the distance to the box) beyond."""
+    from dataset_tools.segmentation.multiview import DISTANCE_PAD, _Distance
+
+    mask = np.zeros((300, 400), bool)
+    cv2.ellipse(mask.view(np.uint8), (150, 120), (40, 25), 30, 0, 360, 1, -1)
+    mask[200:203, 100:180] = True
+    whole = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3)
+    y, x = (a.ravel() for a in np.mgrid[:300, :400])
+    got = _Distance.of(mask).at(y, x)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    near = ((y >= rows[0] - DISTANCE_PAD) & (y <= rows[-1] + DISTANCE_PAD)
+            & (x >= cols[0] - DISTANCE_PAD) & (x <= cols[-1] + DISTANCE_PAD))
+    # (the same two-pass transform on a smaller image: equal up to float rounding)
+    assert np.allclose(got[near], whole[y[near], x[near]], atol=1e-4)
+    assert (~near).any() and np.all(got[~near] <= whole[y[~near], x[~near]] + 1e-3)
+    assert np.all(got[~near] >= 0.95 * DISTANCE_PAD)
+
+
 def test_paint_masks_against_truth(sim):
     key = paint_key_from_object(sim["object"], sim["backgrounds"])
     hand, _, _ = hand_object_masks(sim["canon"], sim["backgrounds"], sim["rig"])

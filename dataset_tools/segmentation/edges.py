@@ -33,8 +33,10 @@ def _ycc(image: np.ndarray) -> np.ndarray:
     return np.asarray(image, np.float32) @ (_YCC.T * WEIGHTS)
 
 
-def _pure_colours(image: np.ndarray, labels: np.ndarray, k: int, thin: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel, the colour (H,W,3) of class k's nearest pure pixels and the distance (H,W) to them.
+def _pure_colours(image: np.ndarray, labels: np.ndarray, k: int, thin: bool, at: tuple[np.ndarray, np.ndarray]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """At the pixels `at` (rows (N,), columns (N,)), the colour (N,3) of class k's nearest pure
+    pixels and the distance (N,) to them.
 
     Pure pixels are those whose 3x3 neighbourhood is all class k (no mixing). A thin part of the
     class (no pure pixel within 2 px) counts as pure only when `thin` is set, or when the class has
@@ -48,14 +50,15 @@ def _pure_colours(image: np.ndarray, labels: np.ndarray, k: int, thin: bool) -> 
         pure = own
     elif thin:
         pure |= own & (cv2.distanceTransform((~pure).astype(np.uint8), cv2.DIST_L2, 3) > 2)
-    weight = cv2.blur(pure.astype(np.float32), (3, 3))
-    mean = cv2.blur(image * pure[..., None], (3, 3)) / np.maximum(weight, 1e-6)[..., None]
     dist, idx = cv2.distanceTransformWithLabels((~pure).astype(np.uint8), cv2.DIST_L2, 5,
                                                 labelType=cv2.DIST_LABEL_PIXEL)
     # idx numbers the zero (pure) pixels in row-major order, from 1
     ys, xs = np.nonzero(pure)
-    nearest = np.clip(idx - 1, 0, len(ys) - 1)
-    return mean[ys[nearest], xs[nearest]], dist
+    nearest = np.clip(idx[at] - 1, 0, len(ys) - 1)
+    ny, nx = ys[nearest], xs[nearest]
+    weight = cv2.blur(pure.astype(np.float32), (3, 3))[ny, nx]
+    mean = cv2.blur(image * pure[..., None], (3, 3))[ny, nx] / np.maximum(weight, 1e-6)[:, None]
+    return mean, dist[at]
 
 
 def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray | None,
@@ -90,8 +93,8 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
         names.append(0)
     near = []
     for k in present:
-        colour, dist = _pure_colours(image, labels, k, k in thin)
-        colour, close = colour[ys, xs], dist[ys, xs] <= REACH
+        colour, dist = _pure_colours(image, labels, k, k in thin, (ys, xs))
+        close = dist <= REACH
         if k in thin:
             # a keyed colour is the same all over: far from the class's pixels (paint seen edge-on
             # along a silhouette) its mean colour stands in
@@ -101,18 +104,26 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
         names.append(k)
         near.append(close)
     reachable = np.stack(([np.ones(len(ys), bool)] if background is not None else []) + near)
-    best = np.full(len(ys), np.inf, np.float32)
-    out_label = labels[ys, xs].copy()
+    # every pair of ends (a class with itself too: a pixel between two of its shades), each at every
+    # shade, all at once: (K, N, 3) for K pairs of colours
     shaded = [[e * f for f in (SHADES if n else (1.0,))] for e, n in zip(ends, names)]
-    for i, j in ((i, j) for i in range(len(ends)) for j in range(i, len(ends))):
-        for x, y in ((x, y) for x in shaded[i] for y in shaded[j]):
-            axis = x - y
-            length2 = np.maximum((axis * axis).sum(axis=1), 1e-6)
-            a = np.clip(((pixel - y) * axis).sum(axis=1) / length2, 0.0, 1.0)
-            residual = ((pixel - y - a[:, None] * axis) ** 2).sum(axis=1)
-            ok = reachable[i] & reachable[j] & (residual < best)
-            best[ok] = residual[ok]
-            out_label[ok] = np.where(a[ok] > 0.5, names[i], names[j])
+    pairs = [(i, j, x, y) for i in range(len(ends)) for j in range(i, len(ends)) for x in shaded[i] for y in shaded[j]]
+    first = np.array([names[i] for i, _, _, _ in pairs])
+    second = np.array([names[j] for _, j, _, _ in pairs])
+    y = np.stack([np.broadcast_to(y, pixel.shape) for _, _, _, y in pairs])
+    axis = np.stack([np.broadcast_to(x, pixel.shape) for _, _, x, _ in pairs]) - y
+    offset = pixel - y
+    length2 = np.maximum(np.einsum("knc,knc->kn", axis, axis), 1e-6)
+    a = np.clip(np.einsum("knc,knc->kn", offset, axis) / length2, 0.0, 1.0)
+    offset -= a[..., None] * axis
+    residual = np.einsum("knc,knc->kn", offset, offset)
+    residual[~np.stack([reachable[i] & reachable[j] for i, j, _, _ in pairs])] = np.inf
+    # the first pair that explains the pixel best; a pixel no pair may explain keeps its label
+    best = np.argmin(residual, axis=0)
+    column = np.arange(len(ys))
+    explained = np.isfinite(residual[best, column])
+    out_label = labels[ys, xs].copy()
+    out_label[explained] = np.where(a[best, column] > 0.5, first[best], second[best])[explained]
     out = labels.copy()
     out[ys, xs] = out_label
     return out

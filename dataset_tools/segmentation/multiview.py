@@ -19,7 +19,17 @@ import numpy as np
 from manus_core.cameras import CameraRig
 from manus_core.errors import SegmentationError
 
-from .background import fill_holes
+from .background import bounding_window, fill_holes
+
+# The distance to a view's mask is computed in a window this many px around it and bounded
+# below by the distance to the mask's box beyond: exact for every voxel whose projected radius is
+# smaller (a 5 mm voxel half a metre from a 1280x720 camera is about 10 px).
+DISTANCE_PAD = 48
+# OpenCV's 3x3 L2 transform steps 0.955 px along an axis and 1.3693 px diagonally, so its distance
+# is at least 0.955 times the Euclidean one: the bound beyond the window is scaled by it.
+CHAMFER_AXIS = 0.955
+
+Window = tuple[slice, slice]
 
 
 @dataclass(frozen=True)
@@ -45,6 +55,31 @@ def pixels(rig: CameraRig, points: np.ndarray) -> np.ndarray:
     return np.rint(np.clip(np.nan_to_num(rig.project(points), nan=-1.0), -1.0, 1e9)).astype(np.int64)
 
 
+@dataclass(frozen=True)
+class _Distance:
+    """A view's distance (px) to its mask: computed in `window` (the mask's box grown by
+    DISTANCE_PAD), and outside it a lower bound, CHAMFER_AXIS times the distance to the mask's box."""
+
+    window: Window
+    box: Window
+    inside: np.ndarray
+
+    @classmethod
+    def of(cls, mask: np.ndarray) -> "_Distance":
+        box = bounding_window(mask, 0)
+        window = bounding_window(mask, DISTANCE_PAD)
+        return cls(window, box, cv2.distanceTransform((~mask[window]).astype(np.uint8), cv2.DIST_L2, 3))
+
+    def at(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+        (r, c), (br, bc) = self.window, self.box
+        dy = np.maximum(np.maximum(br.start - y, y - (br.stop - 1)), 0)
+        dx = np.maximum(np.maximum(bc.start - x, x - (bc.stop - 1)), 0)
+        out = np.sqrt((dx * dx + dy * dy).astype(np.float32)) * np.float32(CHAMFER_AXIS)
+        near = (y >= r.start) & (y < r.stop) & (x >= c.start) & (x < c.stop)
+        out[near] = self.inside[y[near] - r.start, x[near] - c.start]
+        return out
+
+
 def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, points: np.ndarray,
            half: float) -> tuple[np.ndarray, np.ndarray]:
     """(seen, hit) counts per point over the views in `use`: seen when it projects into the image
@@ -59,7 +94,7 @@ def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, point
         inside = (depth[c] > 1e-3) & (x >= 0) & (y >= 0) & (x < w) & (y < h)
         radius = rig.K[c, 0, 0] * half * np.sqrt(3) / np.maximum(depth[c], 1e-3) + 1.0
         d = np.full(len(points), np.inf, np.float32)
-        d[inside] = dist[c][y[inside], x[inside]]
+        d[inside] = dist[c].at(y[inside], x[inside])
         seen += inside
         hit += inside & (d <= radius)
     return seen, hit
@@ -80,7 +115,7 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     use = masks.reshape(len(masks), -1).any(axis=1)
     if np.count_nonzero(use) < min_views:
         raise SegmentationError(f"carve: foreground in {np.count_nonzero(use)} views, need {min_views}")
-    dist = [cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, 3) for m in masks]
+    dist = [_Distance.of(m) if u else None for m, u in zip(masks, use)]
     bounds = default_bounds(rig) if bounds is None else np.asarray(bounds, float)
     axes = [np.arange(lo + coarse / 2, hi, coarse) for lo, hi in bounds.T]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
@@ -97,8 +132,10 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
         points = (points[:, None, :] - size * factor / 2 + offsets[None]).reshape(-1, 3)
 
 
-def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, int]) -> np.ndarray:
-    """Silhouettes (C,H,W) bool of the voxels: their centres and corners drawn, then closed."""
+def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, int],
+                      windows: list[Window | None] | None = None) -> np.ndarray:
+    """Silhouettes (C,H,W) bool of the voxels: their centres and corners drawn, then closed; with
+    `windows`, only inside each view's window (None: nothing in that view)."""
     h, w = shape
     out = np.zeros((len(rig.ids), h, w), bool)
     if not len(occupancy.centres):
@@ -108,11 +145,14 @@ def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, in
     uv = pixels(rig, points)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     for c in range(len(rig.ids)):
-        x, y = uv[c, :, 0], uv[c, :, 1]
-        ok = (x >= 0) & (y >= 0) & (x < w) & (y < h)
-        img = np.zeros((h, w), np.uint8)
+        rows, cols = (slice(0, h), slice(0, w)) if windows is None else windows[c] or (None, None)
+        if rows is None:
+            continue
+        x, y = uv[c, :, 0] - cols.start, uv[c, :, 1] - rows.start
+        img = np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.uint8)
+        ok = (x >= 0) & (y >= 0) & (x < img.shape[1]) & (y < img.shape[0])
         img[y[ok], x[ok]] = 1
-        out[c] = cv2.morphologyEx(img, cv2.MORPH_CLOSE, kernel) > 0
+        out[c][rows, cols] = cv2.morphologyEx(img, cv2.MORPH_CLOSE, kernel) > 0
     return out
 
 
@@ -120,26 +160,30 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2, **c
     """Masks (C,H,W) made consistent across the views, and a report.
 
     Each view keeps its own (pixel-accurate) foreground where the carved volume supports it
-    (within `support_px`), and gets its holes filled where the volume covers them."""
+    (within `support_px`), and gets its holes filled where the volume covers them. All of it
+    happens inside the mask's box: what is kept lies in the mask, and a hole is enclosed by it."""
     masks = np.asarray(masks, bool)
     occupancy = carve(rig, masks, **carve_options)
     if not len(occupancy.centres):
         warnings.warn("multi-view consistency: the views' masks share no volume; masks left as they are",
                       stacklevel=2)
         return masks.copy(), {"voxels": 0, "dropped_px": [0] * len(masks), "filled_px": [0] * len(masks)}
-    projected = project_occupancy(rig, occupancy, masks.shape[1:])
+    # a mask pixel's support depends on the projection up to support_px + 4 px away (the dilation,
+    # then the closing's dilation and erosion), and one pixel of background all round
+    windows = [bounding_window(m, support_px + 5) for m in masks]
+    projected = project_occupancy(rig, occupancy, masks.shape[1:], windows)
     kernel = np.ones((2 * support_px + 1,) * 2, np.uint8)
-    out = np.empty_like(masks)
+    out = masks.copy()
     dropped, filled = [], []
-    for c, (mask, proj) in enumerate(zip(masks, projected)):
-        if not mask.any():
-            out[c] = mask   # a view that saw nothing (occluded) is not filled from the others
-            dropped.append(0)
+    for c, (mask, proj, window) in enumerate(zip(masks, projected, windows)):
+        if window is None:
+            dropped.append(0)   # a view that saw nothing (occluded) is not filled from the others
             filled.append(0)
             continue
+        mask, proj = mask[window], proj[window]
         kept = mask & (cv2.dilate(proj.astype(np.uint8), kernel) > 0)
         done = kept | (fill_holes(kept) & proj)
-        out[c] = done
+        out[c][window] = done
         dropped.append(int(np.count_nonzero(mask & ~kept)))
         filled.append(int(np.count_nonzero(done & ~kept)))
     return out, {"voxels": int(len(occupancy.centres)), "voxel_m": occupancy.voxel, "dropped_px": dropped,

@@ -10,23 +10,26 @@ import numpy as np
 from manus_core.cameras import CameraRig
 from manus_core.errors import SegmentationError
 
-from .background import BackgroundModel, remove_small
+from .background import BackgroundModel, bounding_window, remove_small
 from .colour import ColourModel, PaintKey
 from .edges import refine_edges
-from .multiview import consistent_masks
+from .multiview import Window, consistent_masks
 
 # edges.refine_edges' band (2) and its 5x5 dilation, the 3x3 windows of its pure colours, and a
 # background border several pixels wide so that no image edge is mistaken for a mask's
 EDGE_MARGIN = 12
 
 
-def foreground_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None], min_area: int = 8) -> np.ndarray:
-    """Foreground (C,H,W) of views (C,H,W,3); a view without a background gets an empty mask."""
+def foreground_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None], min_area: int = 8,
+                     gains: Sequence[float | None] | None = None) -> np.ndarray:
+    """Foreground (C,H,W) of views (C,H,W,3); a view without a background gets an empty mask.
+    gains: each view's brightness against its background, when known (BackgroundModel.gain)."""
     images = np.asarray(images)
     out = np.zeros(images.shape[:3], bool)
-    for c, (image, bg) in enumerate(zip(images, backgrounds)):
+    gains = [None] * len(images) if gains is None else gains
+    for c, (image, bg, gain) in enumerate(zip(images, backgrounds, gains)):
         if bg is not None:
-            out[c] = bg.foreground(image, min_area=min_area)
+            out[c] = bg.foreground(image, min_area=min_area, gain=gain)
     return out
 
 
@@ -50,25 +53,29 @@ def paint_key_from_object(images: np.ndarray, backgrounds: Sequence[BackgroundMo
     return PaintKey.from_pixels(object_pixels(images, backgrounds))
 
 
-def _object_by_colour(images: np.ndarray, fg: np.ndarray, object_model: ColourModel) -> np.ndarray:
-    """(C,H,W) foreground pixels more likely of the object's colour than of the skin's.
+def _object_by_colour(images: np.ndarray, fg: np.ndarray, windows: Sequence[Window | None],
+                      object_model: ColourModel) -> np.ndarray:
+    """(C,H,W) foreground pixels more likely of the object's colour than of the skin's, looked for
+    in each view's window around its foreground.
 
     The skin's colour model is learnt from this frame group's own foreground away from the
     object's colours (it follows the subject and the lights). Comparing the two likelihoods
     rather than thresholding the object's alone keeps the object's shaded edges, whose colour is
     rare in the object take but rarer still on skin."""
-    matches = np.stack([object_model.matches(image) for image in images])
     kernel = np.ones((3, 3), np.uint8)
-    skin_px = np.stack([cv2.erode(m.astype(np.uint8), kernel) > 0 for m in fg]) & ~matches
-    if np.count_nonzero(skin_px) < 20:
-        # (almost) all of the foreground is of the object's colour: nothing to compare with
-        return matches
-    skin = ColourModel.fit(images[skin_px])
+    views = [(c, w, images[c][w]) for c, w in enumerate(windows) if w is not None]
+    matches = [object_model.matches(image) for _, _, image in views]
+    skin_px = [(cv2.erode(fg[c][w].astype(np.uint8), kernel) > 0) & ~m for (c, w, _), m in zip(views, matches)]
     out = np.zeros_like(fg)
-    for c, image in enumerate(images):
-        if fg[c].any():
-            decision = object_model.likelihood(image) > skin.likelihood(image)
-            out[c] = cv2.medianBlur(decision.astype(np.uint8), 3) > 0
+    if sum(np.count_nonzero(s) for s in skin_px) < 20:
+        # (almost) all of the foreground is of the object's colour: nothing to compare with
+        for (c, w, _), m in zip(views, matches):
+            out[c][w] = m
+        return out
+    skin = ColourModel.fit(np.concatenate([image[s] for (_, _, image), s in zip(views, skin_px)]))
+    for c, w, image in views:
+        decision = object_model.likelihood(image) > skin.likelihood(image)
+        out[c][w] = cv2.medianBlur(decision.astype(np.uint8), 3) > 0
     return out
 
 
@@ -81,31 +88,24 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     colour: pixels more likely of the object's colour than of the skin's are object, the rest hand
     (without an object model, all foreground is hand); last, the pixels along every edge are
     unmixed against the background and the two classes (edges.refine_edges)."""
-    fg = foreground_masks(images, backgrounds, min_area)
+    gains = [None if bg is None else bg.gain(image) for image, bg in zip(images, backgrounds)]
+    fg = foreground_masks(images, backgrounds, min_area, gains)
     report: dict = {"foreground_px": fg.reshape(len(fg), -1).sum(axis=1).tolist()}
     if rig is not None and np.count_nonzero(fg.reshape(len(fg), -1).any(axis=1)) >= 2:
         fg, report["multiview"] = consistent_masks(rig, fg)
     images = np.asarray(images)
-    is_object = np.zeros_like(fg) if object_model is None else _object_by_colour(images, fg, object_model)
+    # the colours and the edges are decided in a window around the foreground (a hand is a small
+    # part of a 1280x720 view): every pixel they look at is in it, so the labels are the same
+    windows = [bounding_window(m, EDGE_MARGIN) for m in fg]
+    is_object = np.zeros_like(fg) if object_model is None else _object_by_colour(images, fg, windows, object_model)
     obj = np.zeros_like(fg)
     hand = fg.copy()
-    for c, image in enumerate(images):
-        window = _around(fg[c], EDGE_MARGIN)
+    for c, (image, window) in enumerate(zip(images, windows)):
         if window is None:
             continue
-        # the edges are re-decided in a window around the foreground (a hand is a small part of a
-        # 1280x720 view): every pixel the unmixing looks at is in it, so the labels are the same
         labels = fg[c][window].astype(np.uint8)
         labels[remove_small(is_object[c][window] & fg[c][window], min_area)] = 2
-        labels = refine_edges(image[window], labels, backgrounds[c].at_brightness(image, window), (1, 2), band=2)
+        labels = refine_edges(image[window], labels, backgrounds[c].at_brightness(image, window, gains[c]),
+                               (1, 2), band=2)
         hand[c][window], obj[c][window] = labels == 1, labels == 2
     return hand, obj, report
-
-
-def _around(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
-    """(rows, columns) of the mask's bounding box grown by `margin` px; None for an empty mask."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if not len(rows):
-        return None
-    return (slice(max(rows[0] - margin, 0), rows[-1] + margin + 1),
-            slice(max(cols[0] - margin, 0), cols[-1] + margin + 1))

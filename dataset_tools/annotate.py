@@ -46,7 +46,7 @@ from .calibration.formats import load_cameras
 from .hand.bones import bone_lengths_from_samples, bone_samples, estimate_bone_lengths, load_subject, save_subject
 from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
 from .keypoints import hand_keypoint_detector
-from .keypoints.keypoints2d import TakeKeypoints, detect_take, read_keypoints_h5, write_keypoints_h5
+from .keypoints.keypoints2d import TakeKeypoints, box_source, detect_take, read_keypoints_h5, write_keypoints_h5
 from .one_euro import one_euro
 from .simulated_detector import SimulatedDetector, simulated_take_keypoints
 from .sync import GROUPS_FILE, frame_groups
@@ -176,7 +176,7 @@ def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOpti
     detector = hand_keypoint_detector(options.model, device=options.device)
     result = detect_take(take, detector)
     write_keypoints_h5(take.path / "keypoints2d.h5", TakeKeypoints(
-        result, detector.name, str(detector.model.session.path), "palm-detector",
+        result, detector.name, str(detector.model.session.path), box_source(None, track=True),
         {"take": str(take.path), "software": software_version(), "providers": ",".join(detector.providers)}))
     return _gather([result[c].keypoints for c in take.cameras], frame_index), f"detect:{options.model}"
 

@@ -13,7 +13,9 @@ camera's own frame index (its rows of frames.csv):
 
 Boxes file (`--boxes`): an .npz with one array per camera id, (F_cam,4) x0,y0,x1,y1 or (F_cam,5)
 with the hand-axis angle (radians, see boxes.py) in the last column; NaN rows are frames without
-a hand. Without it, MediaPipe's palm detector finds the hand in every frame.
+a hand. Without it, MediaPipe's palm detector finds the hand: by default in the first frame of
+every chunk of frames and wherever the hand is lost, the other frames cropped around the previous
+frame's keypoints, as MediaPipe's tracker runs (`track=False`: the palm detector in every frame).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from manus_core.fileio import write_atomic
 from manus_core.progress import Progress, silent
 from manus_core.take import Take
 
+from . import boxes as bx
 from .detector import Detector
 from .models import JOINT_NAMES, NUM_JOINTS
 
@@ -52,6 +55,11 @@ class TakeKeypoints:
     model_file: str
     box_source: str
     attrs: dict = field(default_factory=dict)
+
+
+def box_source(boxes: str | Path | None, track: bool) -> str:
+    """keypoints2d.h5's `box_source`: file:PATH, palm-detector+tracking or palm-detector."""
+    return f"file:{boxes}" if boxes else "palm-detector+tracking" if track else "palm-detector"
 
 
 def load_boxes(path: str | Path, take: Take, cameras: Sequence[str]) -> dict[str, np.ndarray]:
@@ -82,10 +90,12 @@ def load_boxes(path: str | Path, take: Take, cameras: Sequence[str]) -> dict[str
 
 def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | None = None,
                 cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
-                progress: Progress = silent) -> dict[str, CameraKeypoints]:
+                progress: Progress = silent, track: bool = True) -> dict[str, CameraKeypoints]:
     """Keypoints of every frame of the given cameras (default: all), `chunk` frames per network call.
 
-    boxes: per camera (F,5) as load_boxes gives; None: the palm detector finds one hand per frame.
+    boxes: per camera (F,5) as load_boxes gives; None: the palm detector finds one hand, in every
+    frame, or with `track` in the first frame of each chunk and where the hand is lost, each other
+    frame cropped around the previous one's keypoints (one pass of the keypoint model a frame).
     Reports progress("detect", frames done, frames of all the cameras). Frames past the end of a
     video cut short (Take.missing_frames) stay undetected.
     """
@@ -101,8 +111,8 @@ def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | N
     result = {}
     for cam in cameras:
         kp, used = _empty(take.frame_count(cam))
-        _detect_frames(detector, take.iter_frames(cam, 0, take.readable_frames(cam)), None if boxes is None else boxes[cam], chunk, min_score,
-                       kp, used, batch_done)
+        _detect_frames(detector, take.iter_frames(cam, 0, take.readable_frames(cam)),
+                       None if boxes is None else boxes[cam], chunk, min_score, track, kp, used, batch_done)
         result[cam] = _camera_keypoints(kp, used)
     return result
 
@@ -120,6 +130,7 @@ class DetectTask:
     chunk: int
     min_score: float
     boxes: np.ndarray | None   # (stop - start, 5) of these frames; None: the palm detector
+    track: bool = True         # with the palm detector: track from frame to frame within a chunk
 
 
 _DETECTORS: dict[tuple[str, str], Detector] = {}
@@ -134,19 +145,20 @@ def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
         _DETECTORS[task.model, task.device] = hand_keypoint_detector(task.model, device=task.device)
     kp, used = _empty(task.stop - task.start)
     frames = ((k - task.start, image) for k, image in Take(task.take).iter_frames(task.camera, task.start, task.stop))
-    _detect_frames(_DETECTORS[task.model, task.device], frames, task.boxes, task.chunk, task.min_score, kp, used)
+    _detect_frames(_DETECTORS[task.model, task.device], frames, task.boxes, task.chunk, task.min_score, task.track,
+                   kp, used)
     return kp, used
 
 
 def detect_take_tasks(take: Take, model: str, device: str = "auto", boxes: dict[str, np.ndarray] | None = None,
                       cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
-                      frames_per_task: int = 256) -> list[DetectTask]:
+                      frames_per_task: int = 256, track: bool = True) -> list[DetectTask]:
     """A take's detection split by camera and frame range: whole chunks per task, so that every
-    network call sees the frames it would in one pass over the camera. Frames past the end of a
-    video cut short are in no task (they stay undetected)."""
+    network call (and every run of the tracker) sees the frames it would in one pass over the
+    camera. Frames past the end of a video cut short are in no task (they stay undetected)."""
     span = max(1, frames_per_task // chunk) * chunk
     return [DetectTask(str(take.path.resolve()), cam, start, min(start + span, n), model, device, chunk, min_score,
-                       None if boxes is None else boxes[cam][start:start + span])
+                       None if boxes is None else boxes[cam][start:start + span], track)
             for cam in (cameras or take.cameras) for n in (take.readable_frames(cam),) for start in range(0, n, span)]
 
 
@@ -186,11 +198,14 @@ def _camera_keypoints(kp: np.ndarray, used: np.ndarray) -> CameraKeypoints:
 
 
 def _detect_frames(detector: Detector, frames, boxes: np.ndarray | None, chunk: int, min_score: float,
-                   kp: np.ndarray, used: np.ndarray, done: Callable[[int], None] = lambda n: None) -> None:
+                   track: bool, kp: np.ndarray, used: np.ndarray, done: Callable[[int], None] = lambda n: None) -> None:
     """Detect `chunk` frames ((index, image) pairs) at a time into kp and used; done(frames) after
     each batch."""
     while batch := list(islice(frames, chunk)):
-        _detect_batch(detector, batch, boxes, min_score, kp, used)
+        if track and boxes is None:
+            _track_batch(detector, batch, min_score, kp, used)
+        else:
+            _detect_batch(detector, batch, boxes, min_score, kp, used)
         done(len(batch))
 
 
@@ -211,6 +226,28 @@ def _detect_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], boxes
     out = detector.detect_many(images, [g[None, :4] for g in given], [g[None, 4] for g in given])
     kp[index] = np.concatenate(out)
     used[index] = given
+
+
+def _track_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], min_score: float,
+                 kp: np.ndarray, used: np.ndarray) -> None:
+    """Keypoints of a batch of frames as MediaPipe's tracker finds them: the palm detector and two
+    passes of the keypoint model on the batch's first frame and wherever the hand was lost (its
+    presence below min_score), one pass on the crop around the previous frame's keypoints on every
+    other frame. The batch starts afresh, so a take split into whole batches gives the same."""
+    scale = detector.model.crop.box_scale
+    previous = None
+    for k, image in batch:
+        found = None
+        if previous is not None:
+            rect = bx.rects_from_keypoints(previous[None])
+            found = detector.detect_rects([image], [rect], refine=0)[0][0]
+            # the box that, enlarged by the model's box scale, is the crop: as the palm's boxes
+            given = np.r_[rect[0, :2] - rect[0, 2] / (2 * scale), rect[0, :2] + rect[0, 2] / (2 * scale), rect[0, 4]]
+        if found is None or not found[0, 2] >= min_score:
+            _detect_batch(detector, [(k, image)], None, min_score, kp, used)
+            found, given = kp[k].astype(np.float64), used[k]
+        kp[k], used[k] = found, given
+        previous = found if found[0, 2] >= min_score and np.isfinite(found[:, :2]).all() else None
 
 
 def write_keypoints_h5(path: str | Path, data: TakeKeypoints) -> None:

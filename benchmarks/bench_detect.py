@@ -1,0 +1,128 @@
+"""Hand keypoints on a recorded take: the palm detector in every frame against MediaPipe's tracking.
+
+    .venv/bin/python benchmarks/bench_detect.py [--cameras 8] [--seconds 0.5] [--keep DIR]
+
+The simulated cube records a grasp take at 1280x720 and 120 FPS (`--cameras` spread over the cube,
+JPEG, each camera on its own clock). `detect_take` then runs on it twice, on one core with one
+thread: `track=False`, the palm detector and two passes of the keypoint model in every frame, and
+`track=True` (the default), the palm detector on the first frame of each 16-frame chunk and where the
+hand is lost, one pass on the crop around the previous frame's keypoints elsewhere. Both are scored
+against the simulator's true joints, projected at each frame's true exposure (this is scoring
+code: it reads ground_truth.h5): the share of frames whose true hand is in view that have a hand
+(presence >= 0.5), and the median and 90th percentile over those frames of the per-frame median
+joint error in pixels. Printed beside them: frames per second on the core, and decoding the same
+frames alone (`Take.iter_frames`), the floor of detect; the ratio of tracking's rate to the palm
+detector's in every frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dataset_tools.keypoints import hand_keypoint_detector  # noqa: E402
+from dataset_tools.keypoints.keypoints2d import detect_take  # noqa: E402
+from dataset_tools.simulated_detector import exposure_times, joints_at  # noqa: E402
+from manus_core.ground_truth import GroundTruth  # noqa: E402
+from manus_core.take import Take  # noqa: E402
+from rig.layouts import make_rig  # noqa: E402
+from rig.record import record_take  # noqa: E402
+
+PRESENT = 0.5
+
+
+def record(root: Path, cameras: int, seconds: float) -> Take:
+    config = make_rig("cube53", cameras=cameras, resolution=(1280, 720), fps=120.0, seed=0)
+    config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, supersample=1))
+    t = time.perf_counter()
+    record_take(config, root, "grasp", "grasp", seconds)
+    take = Take(root / "grasp")
+    frames = sum(take.frame_count(c) for c in take.cameras)
+    print(f"recorded {frames} frames of {cameras} cameras at 1280x720 in {time.perf_counter() - t:.0f} s", flush=True)
+    return take
+
+
+def true_pixels(take: Take) -> dict[str, np.ndarray]:
+    """Per camera, the true joints (F,21,2) in its distorted pixels at each frame's exposure; NaN
+    where the joint is behind the camera or out of the image."""
+    gt = GroundTruth.of_take(take.path)
+    rig = gt.cameras.rig()
+    out = {}
+    for cam in take.cameras:
+        host = take.camera_frames(cam)["t_host_ns"].astype(np.float64)[:, None]
+        exposure, _ = exposure_times(gt, (cam,), host)
+        joints = joints_at(gt.frames.tick_ns, gt.hand.joints3d, exposure)[:, 0]      # (F,21,3)
+        uv = rig.subset([cam]).project(joints.reshape(-1, 3))[0].reshape(-1, 21, 2)
+        w, h = take.meta["resolution"]
+        inside = (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+        out[cam] = np.where(inside[..., None], uv, np.nan)
+    return out
+
+
+def score(found: dict, truth: dict[str, np.ndarray]) -> tuple[float, float, float, int]:
+    """(share of in-view frames with a hand, median and 90th percentile of the per-frame median
+    joint error in px, frames scored)."""
+    errors, in_view, present = [], 0, 0
+    for cam, uv in truth.items():
+        kp = found[cam].keypoints
+        visible = np.isfinite(uv).all(axis=-1).sum(axis=1) >= 15          # most of the hand in the image
+        hit = visible & (kp[:, 0, 2] >= PRESENT)
+        in_view += int(visible.sum())
+        present += int(hit.sum())
+        err = np.linalg.norm(kp[hit, :, :2] - uv[hit], axis=-1)
+        errors.append(np.nanmedian(err, axis=1))
+    e = np.concatenate(errors)
+    return present / max(in_view, 1), float(np.median(e)), float(np.percentile(e, 90)), len(e)
+
+
+def timed(fn):
+    start = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cameras", type=int, default=8)
+    parser.add_argument("--seconds", type=float, default=0.5)
+    parser.add_argument("--keep", type=Path, default=None, help="record the take here and keep it (reused if there)")
+    args = parser.parse_args()
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    cv2.setNumThreads(1)
+    root = args.keep or Path(tempfile.mkdtemp(prefix="bench_detect_"))
+    try:
+        take = Take(root / "grasp") if (root / "grasp" / "ground_truth.h5").exists() else \
+            record(root, args.cameras, args.seconds)
+        truth = true_pixels(take)
+        frames = sum(take.frame_count(c) for c in take.cameras)
+        detector = hand_keypoint_detector("mediapipe-hand", device="cpu", threads=1)
+        _, decode_s = timed(lambda: [None for c in take.cameras for _ in take.iter_frames(c)])
+        print(f"\n{'':<34} {'frames/s':>9} {'of decode':>10} {'hand found':>11} {'median px':>10} {'p90 px':>8}")
+        print(f"{'decode alone (Take.iter_frames)':<34} {frames / decode_s:>9.1f} {'100%':>10}")
+        rates = {}
+        for name, track in (("palm detector every frame", False), ("tracking (default)", True)):
+            found, wall = timed(lambda track=track: detect_take(take, detector, track=track))
+            rates[track] = frames / wall
+            share, median, p90, n = score(found, truth)
+            print(f"{name:<34} {rates[track]:>9.1f} {decode_s / wall:>10.0%} {share:>11.0%} {median:>10.2f} "
+                  f"{p90:>8.2f}")
+        print(f"\ntracking / palm detector every frame: {rates[True] / rates[False]:.2f}x the frames per second "
+              f"({frames} frames, {n} scored)")
+    finally:
+        if args.keep is None:
+            shutil.rmtree(root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -11,15 +11,21 @@ onnxruntime, runs through the command line as a user would:
     decode (ffmpeg)     ffmpeg -threads 1 -i CAM.mkv -f null -, camera after camera: the floor
     decode (Take)       Take.iter_frames over every camera: the toolkit's reader and OpenCV's decoder
     sync-report         frame groups and the files' checks (element headers only, nothing decoded)
-    detect              palm detector and hand keypoints (ONNX) on every frame
+    detect              palm detector and hand keypoints (ONNX, tracked) on every frame
     annotate            triangulation, IK and the 1-euro filter from keypoints2d.h5 (reads no image)
     segment             hand masks of every frame group, every camera, into DATASET.h5
+    reconstruct hand    MANUS-Hand trained on crops of 6 poses, 100 steps (counted in steps: its
+                        work does not grow with the take)
+    contacts            every frame group's hand Gaussians against an object's (a sphere of
+                        Gaussians where the hand is: contacts reads no image, and its cost is the
+                        same whatever the object), counted in frames as segment is
 
 Printed per stage and length: frames, seconds, frames/s on the one core, its share of decoding's
 (ffmpeg's) rate, and peak memory (the process's largest resident set, from wait4); then the
 growth from the shortest to the longest take: time (linear: 5x for 2 s -> 10 s, goal <= 5.5x)
-and peak memory (constant: goal <= 1.2x). The calibration is the simulator's true cameras: this
-measures speed and memory, not accuracy (tests and the demo calibrate from the images).
+and peak memory (constant: goal <= 1.2x). The calibration is the simulator's true cameras and the
+bones the subject's: this measures speed and memory, not accuracy (tests and the demo calibrate
+from the images and estimate the bones).
 """
 
 from __future__ import annotations
@@ -41,16 +47,21 @@ import numpy as np  # noqa: E402
 from fullsize_take import extend  # noqa: E402
 
 from dataset_tools.hand.bones import BoneLengths, save_subject  # noqa: E402
-from manus_core.skeleton import DEFAULT_BONE_LENGTHS  # noqa: E402
+from manus_core.dataset import read_dataset  # noqa: E402
 from manus_core.take import Take  # noqa: E402
 from rig.layouts import make_rig  # noqa: E402
 from rig.record import record_take  # noqa: E402
 from rig.sim.cube import true_cameras  # noqa: E402
+from rig.sim.hand import make_hand  # noqa: E402
 
 BIN = Path(sys.executable).parent
 ONE_THREAD = {v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
                                "ORT_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")}
 FLOOR_SHARE = 0.5      # every stage that reads frames at >= 50 % of decoding's rate (issue 23)
+STEPS = 100            # reconstruct hand's training steps
+# triggered together, so that a frame group's repeated frames show one moment in every camera (free-running
+# cameras pair one camera's first rendered frame with another's third, and triangulation mixes moments)
+SYNC = "hardware-trigger"
 TIME_GROWTH, MEMORY_GROWTH = 5.5 / 5, 1.2
 # A small process starts each stage, so that its peak memory (wait4's) is not the benchmark's: a
 # forked child's high-water mark starts at its parent's size and survives exec.
@@ -65,9 +76,10 @@ DECODE = ("import sys\nfrom manus_core.take import Take\nt = Take(sys.argv[1])\n
 class Run:
     stage: str
     seconds: float
-    frames: int
+    frames: int        # frames of the take it went through, or training steps (unit)
     wall_s: float
     rss_mb: float
+    unit: str = "frames"
 
     @property
     def fps(self) -> float:
@@ -76,16 +88,18 @@ class Run:
 
 def make_takes(root: Path, cameras: int, lengths: list[float]) -> dict[float, Path]:
     """A session per length: hand take, empty cube (the background), the true calibration."""
-    config = make_rig("cube53", cameras=cameras, resolution=(1280, 720), fps=120.0, seed=0)
+    config = make_rig("cube53", cameras=cameras, resolution=(1280, 720), fps=120.0, seed=0, sync=SYNC)
     config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, supersample=1))
     base = root / "base"
     t = time.perf_counter()
     for name, kind in (("hand", "hand"), ("empty", "calibration")):
         record_take(config, base, name, kind, 4 / config.fps)
     true_cameras(config).save(base / "cameras.json")
-    # the generic hand's bones: a few detected cameras are no basis for estimating them, nor the point here
-    save_subject(base / "bones.json", "generic", BoneLengths(np.asarray(DEFAULT_BONE_LENGTHS), np.full(20, np.nan),
-                                                             np.zeros(20, int)))
+    # the subject's own bones: a few detected cameras are no basis for estimating them, nor the point
+    # here; with another hand's, the fitted hand misses the masks and reconstruct finds no view
+    bones = make_hand(config.sim.subject).skeleton.bone_lengths
+    save_subject(base / "bones.json", config.sim.subject, BoneLengths(np.asarray(bones), np.full(20, np.nan),
+                                                                      np.zeros(20, int)))
     print(f"rendered and recorded 2 x {cameras} x 4 frames at 1280x720 in {time.perf_counter() - t:.0f} s", flush=True)
     sessions = {}
     for seconds in lengths:
@@ -99,7 +113,7 @@ def make_takes(root: Path, cameras: int, lengths: list[float]) -> dict[float, Pa
     return sessions
 
 
-def measure(stage: str, argv: list[str], seconds: float, frames: int, cpu: int, log: Path) -> Run:
+def measure(stage: str, argv: list[str], seconds: float, frames: int, cpu: int, log: Path, unit: str = "frames") -> Run:
     """Run one stage's process on core `cpu`; its wall time and peak resident memory."""
     env = {**os.environ, **ONE_THREAD}
     peak = log.with_suffix(".rss")
@@ -112,7 +126,7 @@ def measure(stage: str, argv: list[str], seconds: float, frames: int, cpu: int, 
         wall = time.perf_counter() - start
     if code not in (0, 1):   # sync-report exits 1 on a failing verdict, which still ran
         raise SystemExit(f"{stage} failed (exit {code}); see {log}")
-    return Run(stage, seconds, frames, wall, int(peak.read_text()) / 1024)
+    return Run(stage, seconds, frames, wall, int(peak.read_text()) / 1024, unit)
 
 
 def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
@@ -129,18 +143,45 @@ def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
                                  "--bones", str(session / "bones.json"), "-o", str(session / "dataset.h5")],
                     seconds, frames, cpu, log)]
     groups = len(np.load(take / "frame_groups.npz")["frame_ns"])
+    dataset = session / "dataset.h5"
+    views = groups * len(opened.cameras)
     runs.append(measure("segment", [cli, "segment", str(take), "--calib", str(calib), "--background", str(empty),
-                                    "-o", str(session / "dataset.h5")], seconds, groups * len(opened.cameras), cpu,
-                        log))
+                                    "-o", str(dataset)], seconds, views, cpu, log))
+    runs.append(measure("reconstruct hand", [cli, "reconstruct", "hand", "--take", str(take), "--dataset", str(dataset),
+                                             "--cameras", str(calib), "--poses", "6", "--iterations", str(STEPS),
+                                             "--threads", "1", "-o", str(session / "hand.pt"), "--force"],
+                        seconds, STEPS, cpu, log, unit="steps"))
+    key = read_dataset(dataset).takes[0]
+    sphere_object(session / "object.pt", np.nanmean(read_dataset(dataset)[key].keypoints3d, axis=(0, 1)))
+    runs.append(measure("contacts", [cli, "contacts", str(dataset), "--take", key, "--hand", str(session / "hand.pt"),
+                                     "--object", str(session / "object.pt"), "--device", "cpu"],
+                        seconds, views, cpu, log))
     return runs
+
+
+def sphere_object(path: Path, centre: np.ndarray, radius: float = 0.04, count: int = 4000) -> None:
+    """An object checkpoint: `count` Gaussians on a sphere around `centre` (where the hand is)."""
+    import torch
+
+    from manus_capture.splat.checkpoint import save_checkpoint
+    from manus_capture.splat.gaussians import Gaussians
+
+    rng = np.random.default_rng(0)
+    directions = rng.standard_normal((count, 3))
+    points = centre + radius * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    save_checkpoint(path, Gaussians.from_points(torch.as_tensor(points, dtype=torch.float32), sh_degree=0),
+                    kind="object")
 
 
 def report(runs: list[Run], lengths: list[float]) -> None:
     floor = {r.seconds: r.fps for r in runs if r.stage == "decode (ffmpeg)"}
     print(f"\n{'stage':<16} {'take':>5} {'frames':>7} {'s':>8} {'frames/s/core':>14} {'of decode':>10} {'peak MB':>8}")
     for r in runs:
+        share = f"{r.fps / floor[r.seconds]:>9.0%}" if r.unit == "frames" else f"{r.unit + '/s':>9}"
+        goal = "" if r.unit != "frames" or r.stage.startswith("decode") else \
+            "  ok" if r.fps >= FLOOR_SHARE * floor[r.seconds] else f"  below {FLOOR_SHARE:.0%}"
         print(f"{r.stage:<16} {r.seconds:>4g}s {r.frames:>7} {r.wall_s:>8.1f} {r.fps:>14.1f} "
-              f"{r.fps / floor[r.seconds]:>9.0%} {r.rss_mb:>8.0f}")
+              f"{share} {r.rss_mb:>8.0f}{goal}")
     short, long = min(lengths), max(lengths)
     if short == long:
         return

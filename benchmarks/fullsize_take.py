@@ -5,7 +5,8 @@
 
 The simulated cube records a short grasp take (`--distinct` frames per camera, JPEG with sensor
 noise, each camera on its own clock) through the real recorder. Each camera's take is then made
-`--seconds` long in the same format: its JPEG packets repeated in order, muxed again by the
+`--seconds` long in the same format: its JPEG packets played forward and back (a video whose
+consecutive frames are consecutive moments, as a tracker sees one), muxed again by the
 recorder's own MkvWriter (Cues and all), its frames.csv rows continued at its own measured frame
 period with its own device-to-host latency, and take.json's counts and times updated. The
 simulator's truth does not hold for the repeated frames, so ground_truth.h5 is left out: this take
@@ -35,8 +36,18 @@ from rig.mkv import MkvWriter  # noqa: E402
 from rig.record import record_take  # noqa: E402
 
 
+def back_and_forth(n: int, m: int) -> np.ndarray:
+    """n indices into m items, forward and back: 0 1 .. m-1 m-2 .. 1 0 1 .."""
+    if m == 1:
+        return np.zeros(n, np.int64)
+    i = np.arange(n) % (2 * m - 2)
+    return np.where(i < m, i, 2 * m - 2 - i)
+
+
 def extend(take_dir: Path, seconds: float) -> int:
-    """Make a recorded take `seconds` long by repeating each camera's packets; returns its frames."""
+    """Make a recorded take `seconds` long by playing each camera's packets forward and back
+    (0 1 2 3 2 1 0 1 ...: consecutive frames show consecutive moments, as a tracker expects of a
+    video); returns its frames."""
     take = Take(take_dir)
     frames = take.frames
     meta = json.loads((take_dir / "take.json").read_text())
@@ -51,17 +62,18 @@ def extend(take_dir: Path, seconds: float) -> int:
         path = take.video_file(cam)
         tmp = path.with_suffix(".extending.mkv")
         writer = MkvWriter(tmp, entry["width"], entry["height"], entry["fps"], name=cam, fsync=False)
-        sizes = np.array([len(p) for p in packets])
+        order = back_and_forth(n, len(packets))
+        sizes = np.array([len(p) for p in packets])[order]
         for start in range(0, n, 256):   # a batch per system call, as the recorder's writers do
-            writer.write([packets[k % len(packets)].tobytes() for k in range(start, min(start + 256, n))])
+            writer.write([packets[i].tobytes() for i in order[start:start + 256]])
         writer.close()
         tmp.replace(path)
         k = np.arange(n)
         t_device = device[0] + np.rint(k * period).astype(np.int64)
         latency = int(np.median(host - device))
         rows += [format_row(cam, int(seq[0]) + i, int(t_device[i]), int(t_device[i]) + latency,
-                            int(sizes[i % len(sizes)]), 0) for i in range(n)]
-        entry.update(frames=n, bytes=int(sizes[k % len(sizes)].sum()), last_seq=int(seq[0]) + n - 1)
+                            int(sizes[i]), 0) for i in range(n)]
+        entry.update(frames=n, bytes=int(sizes.sum()), last_seq=int(seq[0]) + n - 1)
         total += n
     (take_dir / "ground_truth.h5").unlink(missing_ok=True)
     write_atomic(take_dir / "frames.csv", "".join(rows).encode())

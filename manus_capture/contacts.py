@@ -174,9 +174,15 @@ def contact_image(value: np.ndarray, alpha: np.ndarray, image: np.ndarray | None
 
 
 def write_contacts(path, key: str, maps: ContactMaps, attrs: dict) -> None:
-    """Store a take's contact maps in DATASET.h5 (group `key`/contacts, compressed), atomically."""
-    add_arrays(path, key, {"contacts/instant": maps.instant.astype(np.float16),
+    """Store a take's contact maps in DATASET.h5 (group `key`/contacts, compressed), atomically;
+    instantaneous maps already in float16 (a contact_tasks.ContactStore's, arrays or HDF5
+    datasets) are copied as they are."""
+    add_arrays(path, key, {"contacts/instant": _float16(maps.instant),
                            "contacts/accumulated": maps.accumulated,
-                           "contacts/object_instant": maps.object_instant.astype(np.float16),
+                           "contacts/object_instant": _float16(maps.object_instant),
                            "contacts/object_accumulated": maps.object_accumulated},
                {"contact_tau_m": maps.tau, "contact_soft": maps.soft, **attrs}, stage="contacts")
+
+
+def _float16(maps: np.ndarray) -> np.ndarray:
+    return maps if maps.dtype == np.float16 else maps.astype(np.float16)

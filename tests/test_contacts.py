@@ -169,3 +169,30 @@ def test_canonical_pose_is_the_median_of_fitted_frames():
     assert np.isclose(canonical_pose(angles)[0], 0.25)
     with pytest.raises(EvaluateError):
         canonical_pose(np.full((3, 26), np.nan))
+
+
+@pytest.mark.parametrize("on_disk", [False, True])
+def test_contact_store_puts_ranges_together_in_any_order(tmp_path, on_disk):
+    """The ranges of a take's maps, finishing in any order, go into a ContactStore (arrays, or a
+    file so that a long take's maps need not fit in memory); the maps written into DATASET.h5 are
+    those of the whole take in one piece, and the file is gone after."""
+    import h5py
+
+    from manus_capture.contact_tasks import ContactStore
+    from manus_capture.contacts import accumulate, write_contacts
+
+    rng = np.random.default_rng(0)
+    hand, obj = rng.random((100, 50)).astype(np.float32), (rng.random((100, 30)) < 0.1).astype(np.float32)
+    store = ContactStore(100, 50, 30, tmp_path / "store.h5" if on_disk else None)
+    for start in (64, 0, 96, 32):
+        store.put(start, accumulate(hand[start:start + 32], obj[start:start + 32], TAU_M, True))
+    write_contacts(tmp_path / "D.h5", "S/t", store.maps(TAU_M, True), {})
+    store.close()
+    whole = accumulate(hand, obj, TAU_M, True)
+    with h5py.File(tmp_path / "D.h5") as f:
+        np.testing.assert_array_equal(f["S/t/contacts/instant"][()], whole.instant.astype(np.float16))
+        np.testing.assert_array_equal(f["S/t/contacts/object_instant"][()], whole.object_instant.astype(np.float16))
+        np.testing.assert_array_equal(f["S/t/contacts/accumulated"][()], whole.accumulated)
+        np.testing.assert_array_equal(f["S/t/contacts/object_accumulated"][()], whole.object_accumulated)
+    np.testing.assert_allclose(store.totals, hand.sum(axis=1), rtol=1e-6)
+    assert not (tmp_path / "store.h5").exists()

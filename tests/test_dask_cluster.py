@@ -182,7 +182,8 @@ def contact_inputs(session, inline_result, tmp_path_factory):  # noqa: F811
 
 def test_contacts_in_processes_are_the_inline_run_bit_for_bit(contact_inputs):
     """Soft contacts (every distance counts) of two tasks of 32 frames in two local processes are
-    the maps of one task in this process, and of one model_contacts call over the take."""
+    the maps of one task in this process, and of one model_contacts call over the take (whose
+    instantaneous maps the tasks keep in float16, as DATASET.h5 does)."""
     from manus_capture.contact_tasks import contacts_in_tasks
     from manus_capture.contacts import model_contacts
     from manus_capture.splat.checkpoint import load_checkpoint
@@ -198,7 +199,8 @@ def test_contacts_in_processes_are_the_inline_run_bit_for_bit(contact_inputs):
     assert inline.instant.shape == (len(c["angles"]), len(gaussians)) and inline.accumulated.max() > 0.5
     for maps in (pooled, direct):
         for name in ("instant", "accumulated", "object_instant", "object_accumulated"):
-            assert np.array_equal(getattr(maps, name), getattr(inline, name)), name
+            got = getattr(maps, name)
+            assert np.array_equal(got.astype(getattr(inline, name).dtype), getattr(inline, name)), name
 
 
 def test_contacts_and_evaluate_on_the_cluster_match_local_runs(contact_inputs, cluster, tmp_path):

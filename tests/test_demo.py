@@ -133,9 +133,12 @@ def test_commands_on_the_demo_session(demo, tmp_path):
                                  str(out / "models" / "hand.safetensors"), "--object",
                                  str(out / "models" / "object.safetensors")])
     assert result.exit_code == 0, result.output
+    # the maps went through a file beside the dataset (a long take's do not fit in memory), gone now
+    assert not list(tmp_path.glob(".D.h5.*"))
     with h5py.File(dataset) as f:
         accumulated = f["session/03-grasp1/contacts/accumulated"][()]
         assert f["session/03-grasp1/contacts/instant"].shape[0] == len(f["session/03-grasp1/frame_ns"])
+        assert f["session/03-grasp1/contacts/instant"].dtype == np.float16
     stage_contacts = stage(summary, "contacts")
     assert int((accumulated > 0.5).sum()) == stage_contacts["hand_gaussians_in_contact"]
     scores = tmp_path / "scores.json"
@@ -311,6 +314,28 @@ def test_api_reconstruct_contacts_evaluate(demo, tmp_path):
     baseline, _ = api.score_contacts(template, pose, api.model_contacts(template, angles, obj).accumulated, rig,
                                      paint[order], views)
     assert abs(baseline.mean_iou - summary["baseline_iou"]) < 1e-6
+
+
+def test_refine_in_two_processes_gives_the_angles_of_one(demo, tmp_path):
+    """`refine --workers 2` on two takes: one take a task, each in its own process, and the refined
+    angles are those of the run in this process, bit for bit."""
+    out, _, _ = demo
+    session = out / "session"
+    keys = ("session/03-grasp1", "session/04-canonical1")
+    refined = {}
+    for name, extra in (("inline", []), ("pool", ["--workers", "2"])):
+        dataset = tmp_path / f"{name}.h5"
+        dataset.write_bytes((out / "DATASET.h5").read_bytes())
+        result = CliRunner().invoke(cli, ["refine", str(session / "03-grasp1"), str(session / "04-canonical1"),
+                                          "--dataset", str(dataset), "--calib", str(out / "calib"), "--hand",
+                                          str(out / "models" / "hand.safetensors"), "--keypoint-iterations", "10",
+                                          "--iterations", "1", "--threads", "1", *extra])
+        assert result.exit_code == 0, result.output
+        assert result.output.count("frames refined") == 2, result.output
+        with h5py.File(dataset) as f:
+            refined[name] = [f[key]["joint_angles_refined"][()] for key in keys]
+    for a, b in zip(refined["inline"], refined["pool"]):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_api_refine(demo, tmp_path):

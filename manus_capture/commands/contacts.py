@@ -12,7 +12,7 @@ import numpy as np
 
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.bars import Bars
-from manus_capture.contact_tasks import FRAMES_PER_TASK, contacts_in_tasks
+from manus_capture.contact_tasks import FRAMES_PER_TASK, ContactStore, contacts_in_tasks
 from manus_capture.contacts import POSE_FRAMES, contact_image, write_contacts
 from manus_capture.evaluate import render_contacts
 from manus_capture.splat.checkpoint import load_checkpoint
@@ -72,27 +72,35 @@ def command(dataset: Path, key: str, hand_path: Path, object_path: Path, tau: fl
     obj, _, meta = load_checkpoint(object_path)
     if meta.get("kind") != "object":
         raise EvaluateError(f"{object_path}: a {meta.get('kind')!r} checkpoint, not an object")
-    with Bars(unit="frame") as bars:
-        maps = contacts_in_tasks(key, hand_path, object_path, angles, tau, soft, device, workers, scheduler,
-                                 frames_per_task, bars)
-    write_contacts(dataset, key, maps, {"contact_hand_model": str(hand_path), "contact_object_model": str(object_path),
-                                        **provenance_attrs("contacts", inputs)})
+    # the maps go into a file beside the dataset as the tasks finish: a long take's do not fit in memory
+    store = ContactStore(len(angles), len(hand), len(obj), dataset.with_name(f".{dataset.name}.{key.replace('/', '-')}"
+                                                                              ".contacts.h5"))
+    try:
+        with Bars(unit="frame") as bars:
+            maps = contacts_in_tasks(key, hand_path, object_path, angles, tau, soft, device, workers, scheduler,
+                                     frames_per_task, bars, store)
+        write_contacts(dataset, key, maps, {"contact_hand_model": str(hand_path),
+                                            "contact_object_model": str(object_path),
+                                            **provenance_attrs("contacts", inputs)})
+        accumulated, object_accumulated = maps.accumulated, maps.object_accumulated
+    finally:
+        store.close()
     if renders is not None:
         rig = load_cameras(calib)
+        hold = int(np.argmax(store.totals))   # the firmest grip: the most hand in contact
         uncalibrated = [c for c in ann.cameras if c not in rig.ids]
         if uncalibrated:
             click.echo(f"note: cameras {', '.join(uncalibrated)} of {key} are not in {calib}: not rendered", err=True)
-        hold = int(np.argmax(maps.instant.sum(axis=1)))
         with Bars(unit="view") as bars:
             bars("render", 0, len(rig))
             for i in range(len(rig)):
-                value, alpha = render_contacts(hand, angles[hold], maps.accumulated, rig.subset([rig.ids[i]]))
+                value, alpha = render_contacts(hand, angles[hold], accumulated, rig.subset([rig.ids[i]]))
                 image = contact_image(value[0], alpha[0])
                 write_atomic(renders / f"{rig.ids[i]}.png", cv2.imencode(".png", image)[1].tobytes())
                 bars("render", i + 1, len(rig))
-    touched = int((maps.accumulated > 0.5).sum())
+    touched = int((accumulated > 0.5).sum())
     click.echo(f"contacts: {key}: {len(angles)} frames, {touched}/{len(hand)} hand Gaussians and "
-               f"{int((maps.object_accumulated > 0.5).sum())}/{len(obj)} object Gaussians in contact "
+               f"{int((object_accumulated > 0.5).sum())}/{len(obj)} object Gaussians in contact "
                f"(tau {tau * 1000:g} mm) -> {dataset} ({time.perf_counter() - start:.1f} s)")
 
 

@@ -13,12 +13,15 @@ import numpy as np
 from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.bars import Bars
-from manus_capture.refine import RefineOptions, refine_take, write_refined
+from manus_capture.refine import RefineOptions, write_refined
+from manus_capture.refine_tasks import RefineTask, refine_in_tasks
 from manus_capture.splat.checkpoint import load_checkpoint
 from manus_capture.splat.hand import HandGaussians
-from manus_capture.torch_threads import TRAIN_THREADS, torch_threads
+from manus_capture.torch_threads import TRAIN_THREADS
 from manus_core.dataset import read_dataset
 from manus_core.errors import RefineInputError
+
+from .cluster import cluster_options
 
 DEFAULTS = RefineOptions()
 
@@ -40,9 +43,11 @@ DEFAULTS = RefineOptions()
 @click.option("--scale", type=click.FloatRange(0, 1, min_open=True), default=1.0, show_default=True,
               help="Reduce the images before the windows around the hand are cut.")
 @click.option("--threads", type=click.IntRange(1), default=TRAIN_THREADS, show_default=True,
-              help="Torch threads.")
+              help="Torch threads of each take's refinement (the same wherever it runs).")
+@cluster_options("one take a task")
 def command(takes: tuple[Path, ...], dataset: Path, calib: Path, hand_path: Path | None, keypoint_iterations: int,
-            iterations: int, views_per_frame: int, scale: float, threads: int) -> None:
+            iterations: int, views_per_frame: int, scale: float, threads: int, workers: int,
+            scheduler: str | None) -> None:
     """Refine the joint angles of TAKES (docs/refine.md): every frame's pose is fitted to the images
     by rendering MANUS-Hand into every view, with the keypoints and a smoothness term. Writes
     joint_angles_refined and the per-frame loss beside annotate's angles, which stay as they are;
@@ -65,14 +70,15 @@ def command(takes: tuple[Path, ...], dataset: Path, calib: Path, hand_path: Path
     if missing:
         raise RefineInputError(f"{dataset}: no annotation of {', '.join(missing)} (run annotate on it first)")
     model_sha = hashlib.sha256(hand_path.read_bytes()).hexdigest()
-    for take, key in zip(takes, keys):
-        start = time.perf_counter()
-        with Bars(unit="step") as bars, torch_threads(threads):
-            result = refine_take(dataset, key, take, rig, model, options, hand_path, bars)
-        annotation = data.provenance(key, "annotate") or {}
-        write_refined(dataset, key, result, {"take": annotation.get("take"), "hand_model_sha256": model_sha,
-                                             "options": asdict(options)})
-        loss0, loss1 = np.nanmean(result.loss_initial), np.nanmean(result.loss)
-        click.echo(f"refine: {key}: {result.frames_refined} frames refined, {result.frames_diverged} diverged "
-                   f"(kept unrefined), {result.views} views; loss {loss0:.4f} -> {loss1:.4f} "
-                   f"({time.perf_counter() - start:.1f} s) -> {dataset}")
+    tasks = [RefineTask(str(dataset.resolve()), key, str(take.resolve()), rig, model, str(hand_path), options, threads)
+             for take, key in zip(takes, keys)]
+    start = time.perf_counter()
+    with Bars(unit="step") as bars:
+        for task, result in refine_in_tasks(tasks, workers, scheduler, bars):
+            annotation = data.provenance(task.key, "annotate") or {}
+            write_refined(dataset, task.key, result, {"take": annotation.get("take"), "hand_model_sha256": model_sha,
+                                                      "options": asdict(options)})
+            loss0, loss1 = np.nanmean(result.loss_initial), np.nanmean(result.loss)
+            click.echo(f"refine: {task.key}: {result.frames_refined} frames refined, {result.frames_diverged} "
+                       f"diverged (kept unrefined), {result.views} views; loss {loss0:.4f} -> {loss1:.4f} "
+                       f"({time.perf_counter() - start:.1f} s) -> {dataset}")

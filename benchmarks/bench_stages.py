@@ -151,8 +151,9 @@ def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
                                              "--cameras", str(calib), "--poses", "6", "--iterations", str(STEPS),
                                              "--threads", "1", "-o", str(session / "hand.pt"), "--force"],
                         seconds, STEPS, cpu, log, unit="steps"))
-    key = read_dataset(dataset).takes[0]
-    sphere_object(session / "object.pt", np.nanmean(read_dataset(dataset)[key].keypoints3d, axis=(0, 1)))
+    data = read_dataset(dataset)
+    key = data.takes[0]
+    sphere_object(session / "object.pt", np.nanmean(data[key].keypoints3d, axis=(0, 1)))
     runs.append(measure("contacts", [cli, "contacts", str(dataset), "--take", key, "--hand", str(session / "hand.pt"),
                                      "--object", str(session / "object.pt"), "--device", "cpu"],
                         seconds, views, cpu, log))

@@ -110,9 +110,9 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
     pairs = [(i, j, x, y) for i in range(len(ends)) for j in range(i, len(ends)) for x in shaded[i] for y in shaded[j]]
     first = np.array([names[i] for i, _, _, _ in pairs])
     second = np.array([names[j] for _, j, _, _ in pairs])
-    y = np.stack([np.broadcast_to(y, pixel.shape) for _, _, _, y in pairs])
-    axis = np.stack([np.broadcast_to(x, pixel.shape) for _, _, x, _ in pairs]) - y
-    offset = pixel - y
+    start = np.stack([np.broadcast_to(end, pixel.shape) for _, _, _, end in pairs])
+    axis = np.stack([np.broadcast_to(end, pixel.shape) for _, _, end, _ in pairs]) - start
+    offset = pixel - start
     length2 = np.maximum(np.einsum("knc,knc->kn", axis, axis), 1e-6)
     a = np.clip(np.einsum("knc,knc->kn", offset, axis) / length2, 0.0, 1.0)
     offset -= a[..., None] * axis

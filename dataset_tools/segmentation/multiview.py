@@ -145,9 +145,10 @@ def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, in
     uv = pixels(rig, points)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     for c in range(len(rig.ids)):
-        rows, cols = (slice(0, h), slice(0, w)) if windows is None else windows[c] or (None, None)
-        if rows is None:
+        window = (slice(0, h), slice(0, w)) if windows is None else windows[c]
+        if window is None:
             continue
+        rows, cols = window
         x, y = uv[c, :, 0] - cols.start, uv[c, :, 1] - rows.start
         img = np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.uint8)
         ok = (x >= 0) & (y >= 0) & (x < img.shape[1]) & (y < img.shape[0])

@@ -46,7 +46,7 @@ test: models
 # second OpenCV); aniposelib's triangulation imports jax when it runs, so jax's CPU build comes too
 bench: models
 	$(PY) -m pip install -q --no-deps aniposelib==0.8.0 OneEuroFilter==0.2.1
-	$(PY) -m pip install -q toml pandas 'jax[cpu]' simplejpeg
+	$(PY) -m pip install -q toml pandas 'jax[cpu]'
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:

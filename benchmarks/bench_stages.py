@@ -9,9 +9,12 @@ length, one process per stage, pinned to one CPU core with one thread for numpy,
 onnxruntime, runs through the command line as a user would:
 
     decode (ffmpeg)     ffmpeg -threads 1 -i CAM.mkv -f null -, camera after camera: the floor
-    decode (Take)       Take.iter_frames over every camera: the toolkit's reader and OpenCV's decoder
+    decode (Take)       Take.iter_frames over every camera: the toolkit's reader and its decoder
+                        (simplejpeg: libjpeg-turbo)
     sync-report         frame groups and the files' checks (element headers only, nothing decoded)
     detect              palm detector and hand keypoints (ONNX, tracked) on every frame
+    detect (int8)       the same with the int8 landmark model (`models quantize`, calibrated on the
+                        shortest hand take, in a model cache of the benchmark's own)
     annotate            triangulation, IK and the 1-euro filter from keypoints2d.h5 (reads no image)
     segment             hand masks of every frame group, every camera, into DATASET.h5
     reconstruct hand    MANUS-Hand trained on crops of 6 poses, 100 steps (counted in steps: its
@@ -45,6 +48,7 @@ sys.path[:0] = [str(HERE.parent), str(HERE)]
 
 import numpy as np  # noqa: E402
 from fullsize_take import extend  # noqa: E402
+from int8_cache import quantized_cache  # noqa: E402
 
 from dataset_tools.hand.bones import BoneLengths, save_subject  # noqa: E402
 from manus_core.dataset import read_dataset  # noqa: E402
@@ -139,6 +143,8 @@ def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
             measure("decode (Take)", [sys.executable, "-c", DECODE, str(take)], seconds, frames, cpu, log),
             measure("sync-report", [cli, "sync-report", str(take)], seconds, frames, cpu, log),
             measure("detect", [cli, "detect", str(take), "--force"], seconds, frames, cpu, log),
+            measure("detect (int8)", [cli, "detect", str(take), "--model", "mediapipe-hand-int8",
+                                      "-o", str(session / "keypoints_int8.h5")], seconds, frames, cpu, log),
             measure("annotate", [cli, "annotate", str(take), "--calib", str(calib), "--keypoints", "file",
                                  "--bones", str(session / "bones.json"), "-o", str(session / "dataset.h5")],
                     seconds, frames, cpu, log)]
@@ -206,6 +212,7 @@ def main() -> None:
     cpu = min(os.sched_getaffinity(0))
     try:
         sessions = make_takes(root, args.cameras, args.seconds)
+        quantized_cache(root, [sessions[min(sessions)] / "hand"], root / "stages.log")
         runs = []
         for seconds, session in sessions.items():
             runs += stages(session, seconds, cpu, root / "stages.log")

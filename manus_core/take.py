@@ -7,7 +7,7 @@
 
 A camera's *frame index* k is its k-th row in frames.csv and its k-th packet in CAM.mkv. Frames are
 read as raw JPEG packets (no decoding while skipping; a Matroska video is entered at the frame asked
-for through its Cues, manus_core.matroska) and decoded with OpenCV only when asked for.
+for through its Cues, manus_core.matroska) and decoded only when asked for.
 Every error names the file and what is wrong (TakeError, exit code 2 in the CLI).
 """
 
@@ -22,6 +22,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import simplejpeg
 
 from manus_core.errors import TakeError
 from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
@@ -254,7 +255,13 @@ def video_packets(path: Path) -> Iterator[np.ndarray]:
 
 
 def _decode(packet: np.ndarray, path: Path, k: int) -> np.ndarray:
-    image = cv2.imdecode(packet, cv2.IMREAD_COLOR)
+    # simplejpeg: the same libjpeg-turbo as OpenCV and the same pixels, in about half of imdecode's
+    # time for the cube's 1280x720 frames. It refuses a scan that libjpeg decodes with a warning (a
+    # bit flipped on the link): OpenCV still decodes those, as the recorder's users always had them.
+    try:
+        return simplejpeg.decode_jpeg(packet, colorspace="BGR")
+    except ValueError:
+        image = cv2.imdecode(packet, cv2.IMREAD_COLOR)
     if image is None:
         raise TakeError(f"{path}: frame {k} is not a decodable JPEG ({packet.size} bytes)")
     return image

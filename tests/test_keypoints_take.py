@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import simplejpeg
 
 from dataset_tools.keypoints.keypoints2d import detect_take
 from manus_core.errors import TakeError
@@ -94,6 +95,30 @@ def test_frames_decode_to_the_recorded_jpegs(take) -> None:
     assert stepped == [1, 4]
     direct = t.read_frame("cam00", 5)
     assert np.array_equal(direct, cv2.imdecode(np.frombuffer(jpegs["cam00"][5], np.uint8), cv2.IMREAD_COLOR))
+
+
+def test_a_frame_with_a_corrupt_scan_decodes_as_opencv_decodes_it(take) -> None:
+    """simplejpeg refuses a scan that libjpeg decodes with a warning; the reader falls back to OpenCV,
+    so a bit error on a camera's link costs no frame."""
+    path, jpegs = take
+    good = jpegs["cam00"][3]
+    start = good.index(b"\xff\xda") + 16                    # inside the scan data
+    bad = next(b for i in range(start, len(good) - 4) for b in (good[:i] + b"\x00\xff\x00" + good[i + 3:],)
+               if _refused(b) and cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR) is not None)
+    video = path / "cams" / "cam00.mkv"
+    data = video.read_bytes()
+    assert data.count(good) == 1
+    video.write_bytes(data.replace(good, bad))
+    image = Take(path).read_frame("cam00", 3)
+    assert np.array_equal(image, cv2.imdecode(np.frombuffer(bad, np.uint8), cv2.IMREAD_COLOR))
+
+
+def _refused(jpeg: bytes) -> bool:
+    try:
+        simplejpeg.decode_jpeg(jpeg, colorspace="BGR")
+    except ValueError:
+        return True
+    return False
 
 
 def test_errors_name_the_file(take, tmp_path: Path) -> None:

@@ -146,6 +146,11 @@ def test_segment_object_take_is_all_object(grasp_session):
     keep, truth = _truth(session, "object", frame_ns)
     assert keep and not hand.any()
     assert iou(obj[keep], truth == 2) >= 0.95, iou(obj[keep], truth == 2)
+    # views without a mask are never written: no chunk stored, no time spent compressing nothing
+    with h5py.File(out) as f:
+        group = f[take_key(session / "S" / "object")]
+        assert group["masks/hand"].id.get_num_chunks() == 0
+        assert group["masks/object"].id.get_num_chunks() == int(obj.any(axis=(2, 3)).sum()) > 0
 
 
 def test_segment_canonical_paint(canon_session):

@@ -144,7 +144,8 @@ def _check_image(image: np.ndarray) -> None:
 
 def hand_keypoint_detector(name: str | Path = "mediapipe-hand", device: str = "auto",
                            threads: int | None = None, batch_size: int = 64) -> Detector:
-    """A Detector for `mediapipe-hand` (full), `mediapipe-hand-lite`, or a SimCC/heatmap spec (.toml).
+    """A Detector for `mediapipe-hand` (full), `mediapipe-hand-lite`, `mediapipe-hand-int8` (after
+    `models quantize`), or a SimCC/heatmap spec (.toml).
 
     device: auto (CUDA when onnxruntime has it, else CPU), cpu or cuda.
     """

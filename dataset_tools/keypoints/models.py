@@ -88,7 +88,8 @@ class KeypointModel:
 
 
 class MediaPipeHand(KeypointModel):
-    """MediaPipe hand landmark (full or lite), converted to ONNX by `models install mediapipe-hand`.
+    """MediaPipe hand landmark (full or lite), converted to ONNX by `models install mediapipe-hand`, or
+    the full one in int8 (`models quantize`, quantize.py).
 
     Input: 224x224 RGB in [0, 1], the hand upright. Outputs: 21 (x, y, z) landmarks in input pixels
     (continuous coordinates spanning the input edge to edge), a hand-presence probability, the
@@ -104,10 +105,13 @@ class MediaPipeHand(KeypointModel):
 
     def __init__(self, variant: str = "full", path: str | Path | None = None, device: str = "auto",
                  threads: int | None = None, refine: int = 1) -> None:
-        if variant not in ("full", "lite"):
-            raise ModelError(f"MediaPipe hand variant must be full or lite, got {variant!r}")
+        if variant not in ("full", "lite", "int8"):
+            raise ModelError(f"MediaPipe hand variant must be full, lite or int8, got {variant!r}")
+        if path is None and variant == "int8":
+            from .quantize import int8_path
+            path = int8_path()
         path = Path(path) if path is not None else model_path("mediapipe-hand", f"hand_landmark_{variant}")
-        self.name = "mediapipe-hand" + ("" if variant == "full" else "-lite")
+        self.name = "mediapipe-hand" + ("" if variant == "full" else f"-{variant}")
         self.session = Session(path, device=device, threads=threads)
         self.session.expect_input((None, 3, self.SIZE, self.SIZE))
         if len(self.session.output_names) != 4:
@@ -278,16 +282,17 @@ def reorder(raw: np.ndarray, keypoints: tuple[int, ...], source: Path | str) -> 
 
 def load_model(name: str | Path = "mediapipe-hand", device: str = "auto",
                threads: int | None = None) -> KeypointModel:
-    """`mediapipe-hand`, `mediapipe-hand-lite`, or a path to a model spec (.toml)."""
+    """`mediapipe-hand`, `mediapipe-hand-lite`, `mediapipe-hand-int8` (after `models quantize`), or a
+    path to a model spec (.toml)."""
     text = str(name)
     if text in ("mediapipe-hand", "mediapipe-hand-full"):
         return MediaPipeHand("full", device=device, threads=threads)
-    if text == "mediapipe-hand-lite":
-        return MediaPipeHand("lite", device=device, threads=threads)
+    if text in ("mediapipe-hand-lite", "mediapipe-hand-int8"):
+        return MediaPipeHand(text.rsplit("-", 1)[1], device=device, threads=threads)
     if text.endswith(".toml"):
         return SpecModel(text, device=device, threads=threads)
     if text.endswith(".onnx"):
         raise ModelError(f"{text}: an ONNX file needs a spec (.toml) that says how to decode it; "
                          "see docs/keypoints.md")
-    raise ModelError(f"unknown keypoint model {text!r}: use mediapipe-hand, mediapipe-hand-lite "
-                     "or a model spec (.toml)")
+    raise ModelError(f"unknown keypoint model {text!r}: use mediapipe-hand, mediapipe-hand-lite, "
+                     "mediapipe-hand-int8 or a model spec (.toml)")

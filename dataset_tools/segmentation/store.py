@@ -25,5 +25,12 @@ class MaskStore(ScratchArrays):
 
     def put(self, start: int, hand: np.ndarray, obj: np.ndarray) -> None:
         """The masks (n,C,H,W) of groups start ... start + n - 1."""
-        self.hand[start:start + len(hand)] = hand
-        self.object[start:start + len(obj)] = obj
+        for array, masks in ((self.hand, hand), (self.object, obj)):
+            if isinstance(array, np.ndarray):
+                array[start:start + len(masks)] = masks
+                continue
+            # On disk only the views with a mask are written: a chunk never written reads as False and
+            # takes no space (in the file, and in DATASET.h5, which copies the chunks as they are),
+            # while compressing an empty view costs as much as a full one (1.4 ms at 1280x720).
+            for t, c in zip(*np.nonzero(masks.any(axis=(2, 3)))):
+                array[start + t, c] = masks[t, c]

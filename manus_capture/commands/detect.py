@@ -27,7 +27,8 @@ from .cluster import cluster_options
 @click.command("detect", context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("take", type=click.Path(path_type=Path))
 @click.option("--model", "model_name", default="mediapipe-hand", show_default=True,
-              help="mediapipe-hand, mediapipe-hand-lite, or a SimCC/heatmap model spec (.toml).")
+              help="mediapipe-hand, mediapipe-hand-lite, mediapipe-hand-int8 (after `models quantize`), "
+                   "or a SimCC/heatmap model spec (.toml).")
 @click.option("--boxes", "boxes_path", type=click.Path(path_type=Path), default=None,
               help="Hand boxes per camera and frame (.npz: CAM -> (F,4) or (F,5) with the hand angle). "
                    "Default: MediaPipe's palm detector finds the hand.")

@@ -1,11 +1,15 @@
-"""`manus-capture models`: install and list the hand keypoint models."""
+"""`manus-capture models`: install, quantize and list the hand keypoint models."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
 from dataset_tools.keypoints.install import bundle_dir, install, list_models
+from dataset_tools.keypoints.quantize import quantize_landmarks
 from manus_capture.bars import Bars
+from manus_core.take import Take
 
 
 @click.group("models", context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,6 +34,29 @@ def install_cmd(name: str, force: bool) -> None:
                else f"{name}: already installed in {bundle_dir(name)}; nothing to do")
 
 
+@command.command("quantize")
+@click.argument("name", type=click.Choice(["mediapipe-hand"]))
+@click.option("--calibration", "takes", type=click.Path(path_type=Path), multiple=True, required=True,
+              help="A take to calibrate on (repeat for more): frames spread over its cameras and frames.")
+@click.option("--crops", type=click.IntRange(1, 4096), default=64, show_default=True,
+              help="Hand crops to calibrate on.")
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="cpu", show_default=True,
+              help="Where the float model finds the hands and the calibration runs.")
+def quantize_cmd(name: str, takes: tuple[Path, ...], crops: int, device: str) -> None:
+    """Quantize MediaPipe's full hand landmark model to int8 on your own takes.
+
+    The float model finds hands in frames spread over the takes' cameras; onnxruntime quantizes
+    the network on those crops (static, QDQ). `detect --model mediapipe-hand-int8` then runs it, in
+    about half the float model's time on a CPU with AVX-512 VNNI. Running it again replaces it.
+    """
+    loaded = [Take(t) for t in takes]
+    with Bars() as bars:
+        record = quantize_landmarks(loaded, crops, device, progress=bars)
+    click.echo(f"{name}-int8: calibrated on {record['crops']} hand crops of {len(loaded)} take(s); "
+               f"keypoints {record['median_px']} px (median) and {record['p90_px']} px (90th percentile) "
+               f"from the float model's on them, in 224-pixel crops -> {bundle_dir(name)}")
+
+
 @command.command("list")
 def list_cmd() -> None:
     """List the installable models and whether they are installed."""
@@ -41,4 +68,5 @@ def list_cmd() -> None:
         if row["installed"]:
             click.echo(f"{'':<16} {row['path']}: {', '.join(row['files'])}")
     click.echo(f"{sum(r['installed'] for r in rows)} of {len(rows)} models installed; also usable: "
-               "mediapipe-hand-lite, or a SimCC/heatmap model spec (.toml)")
+               "mediapipe-hand-lite, mediapipe-hand-int8 (after `models quantize`), or a SimCC/heatmap "
+               "model spec (.toml)")

@@ -17,6 +17,7 @@ import pytest
 from click.testing import CliRunner
 from test_annotate_detect import CAMERAS, TICKS, installed, rendered  # noqa: F401  (fixtures)
 from test_keypoints_real import FLOORS, gt_box, pck_hits, samples  # noqa: F401  (fixture)
+from test_keypoints_take import make_take
 
 from dataset_tools.keypoints import hand_keypoint_detector
 from dataset_tools.keypoints.install import bundle_dir
@@ -67,6 +68,17 @@ def test_quantize_writes_the_model_and_what_it_was_calibrated_on(cache, quantize
     sizes = [(cache / f"{stem}.onnx").stat().st_size for stem in ("hand_landmark_full_int8", "hand_landmark_full")]
     assert sizes[0] < 0.4 * sizes[1], sizes
     assert not [f for f in os.listdir(cache) if f.startswith(".")]      # nothing staged is left behind
+
+
+def test_a_calibration_take_without_hands_is_refused_in_one_line(cache, tmp_path) -> None:
+    """Frames without a hand (the empty cube) cannot calibrate anything: exit 2, the model untouched."""
+    rng = np.random.default_rng(0)
+    make_take(tmp_path / "empty", {"c0": [rng.integers(0, 256, (96, 128, 3), dtype=np.uint8) for _ in range(4)]})
+    before = sorted(os.listdir(cache))
+    result = CliRunner().invoke(cli, ["models", "quantize", "mediapipe-hand", "--calibration", str(tmp_path / "empty")])
+    assert result.exit_code == 2, result.output
+    assert "no hand found in the 4 frames looked at for calibration" in result.output.strip().splitlines()[-1]
+    assert sorted(os.listdir(cache)) == before
 
 
 def test_int8_keeps_the_float_models_floors_on_real_photos(quantized, samples) -> None:  # noqa: F811

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
+from itertools import islice
 from pathlib import Path
 
 import numpy as np
@@ -63,16 +64,18 @@ def calibration_crops(takes: Sequence[Take], detector: Detector, crops: int = 64
     per_view = max(1, -(-2 * crops // len(views)))
     size = detector.model.crop.width
     found: list[np.ndarray] = []
+    looked = 0
     for i, (take, cam) in enumerate(views):
         progress("calibration cameras", i, len(views))
         n = take.readable_frames(cam)
-        images = [image for _, image in take.iter_frames(cam, 0, n, max(1, n // per_view))][:per_view]
+        images = [image for _, image in islice(take.iter_frames(cam, 0, n, max(1, n // per_view)), per_view)]
+        looked += len(images)
         for image, kp in zip(images, detector.find_hands(images, 1, min_score)):
             if len(kp) and kp[0, 0, 2] >= min_score:
                 found.append(bx.crop(image, bx.rects_from_keypoints(kp[:1]), size, size)[0])
     progress("calibration cameras", len(views), len(views))
     if not found:
-        raise ModelError(f"no hand found in the {len(views) * per_view} frames looked at for calibration: "
+        raise ModelError(f"no hand found in the {looked} frames looked at for calibration: "
                          "give takes in which the cameras see a hand")
     step = max(1, len(found) // crops)
     return np.concatenate(found[::step][:crops])

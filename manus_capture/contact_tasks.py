@@ -29,7 +29,9 @@ from .contacts import POSE_FRAMES, ContactMaps, model_contacts
 from .splat.checkpoint import load_checkpoint
 from .splat.hand import HandGaussians
 
-FRAMES_PER_TASK = 512
+# A task holds its range's posed points, neighbour search and maps: with 512 frames a 10 s take's
+# peak memory was 1.37x a 2 s take's (a range filling up), with 128 frames 1.05x (bench_stages).
+FRAMES_PER_TASK = 128
 INSTANT, OBJECT_INSTANT = "contacts/instant", "contacts/object_instant"
 
 

@@ -11,19 +11,26 @@ import sys
 from tqdm import tqdm
 
 
+class _Bar(tqdm):
+    # Bars sets each bar's count and redraws it itself, so tqdm's monitor thread (which tunes the
+    # redraw interval of update()) has nothing to do; with it, annotate's peak memory on a 10 s take
+    # was 313 or 366 MB between identical runs, without it 313 MB in each of five.
+    monitor_interval = 0
+
+
 class Bars:
     """One tqdm bar per stage of progress(stage, done, total); a context manager closes the last."""
 
     def __init__(self, unit: str = "it") -> None:
         self.unit = unit
-        self.bar: tqdm | None = None
+        self.bar: _Bar | None = None
         self.stage: str | None = None
 
     def __call__(self, stage: str, done: int, total: int | None) -> None:
         if stage != self.stage:
             self.close()
             self.stage = stage
-            self.bar = tqdm(total=total, desc=stage, unit=self.unit, file=sys.stderr)
+            self.bar = _Bar(total=total, desc=stage, unit=self.unit, file=sys.stderr)
         self.bar.n = done
         self.bar.refresh()
 

@@ -15,7 +15,11 @@ many dirty bytes (vm.dirty_background_ratio of the memory, about 2 GB on a 24 GB
 the kernel writes back, and past about 1.5 times that it holds every writer until the disk
 catches up: 2 s at the rates searched here are 3 to 5 GB, so on a disk that is slower than the
 rate the search finds the disk's writeback, not the recorder (docs/recording.md, "Speed").
---out DIR measures another disk. On a disk the "with fsync" figure is its sustained speed.
+--out DIR measures another disk. On a disk the "with fsync" figure is its sustained speed. Every
+take and every baseline starts with the page cache written back (os.sync(), not timed), as a take
+does that follows the last by the seconds an operator needs between grasps: back to back, a take
+started while the kernel was still writing the last one's gigabytes lost frames with as few as 16
+cameras.
 
 A second search (in the first run), take by take in turn with the first, records with the live monitor (`record
 --monitor`) serving the take to a page that polls it: /api/status and every camera's thumbnail
@@ -181,6 +185,7 @@ def plain_append(frames: list[bytes], folder: Path, seconds: float) -> tuple[flo
     """Frames per second of one thread appending the frames to one file: (page cache, + fsync)."""
     path = folder / "append.bin"
     n = 0
+    os.sync()
     with open(path, "wb") as f:
         t0 = time.perf_counter()
         while time.perf_counter() - t0 < seconds:
@@ -253,6 +258,7 @@ def record(frames: list[bytes], folder: Path, cameras: int, fps: float, seconds:
     rig = dataclasses.replace(rig, cameras=configs)
     cams = {c.id: PacedCamera(c.id, frames, fps) for c in configs}
     take = folder / f"take-{cameras}"
+    os.sync()
     recorder = Recorder(rig, take, "calibration", seconds, TakeCameras(cams), MonotonicClock())
     with page_open(recorder) if monitor else contextlib.nullcontext() as served, Load() as load:
         t = time.perf_counter()

@@ -4,7 +4,7 @@
 over the takes' cameras and frames, crops them as the tracker does, and quantizes the network
 statically with onnxruntime: QDQ, int8 weights per output channel, uint8 activations whose ranges
 are the minimum and maximum each tensor reached on those crops. On an AVX-512 VNNI core it runs in
-half the float model's time (docs/keypoints.md has the accuracy against the float model).
+0.6 of the float model's time (docs/keypoints.md has the accuracy against the float model).
 
 Calibrating on the lab's own recordings, as TensorRT's int8 calibration does, gives the ranges of
 the lab's hands, light and cameras. The result is `hand_landmark_full_int8.onnx` beside the
@@ -42,8 +42,8 @@ QDQ_OPSET = 13           # per-channel DequantizeLinear needs its `axis`, added 
 CALIBRATION_BATCH = 4    # crops per calibration run: the range-recording model holds every activation
 # The first convolutions stay in float. Quantized, they moved the hand presence by up to 0.2 (the
 # tracker loses a hand below 0.5: 3 % of a tracked take's crops) and the keypoints by 1.5 px median
-# in the crop; with the first 8 in float, 0.04 and 0.5 px, at 5.7 against 9 ms a crop in float
-# (all quantized: 5 ms). Measured on 320 tracked crops of benchmarks/bench_stages.py's hand take.
+# in the crop; with the first 8 in float, 0.04 and 0.5 px, at 4.9 against 8.5 ms a crop in float
+# (all quantized: 4.3 ms). Measured on 320 tracked crops of benchmarks/bench_stages.py's hand take.
 FLOAT_CONVS = 8
 
 

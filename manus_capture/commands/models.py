@@ -47,7 +47,7 @@ def quantize_cmd(name: str, takes: tuple[Path, ...], crops: int, device: str) ->
 
     The float model finds hands in frames spread over the takes' cameras; onnxruntime quantizes
     the network on those crops (static, QDQ). `detect --model mediapipe-hand-int8` then runs it, in
-    about half the float model's time on a CPU with AVX-512 VNNI. Running it again replaces it.
+    about 0.6 of the float model's time on a CPU with AVX-512 VNNI. Running it again replaces it.
     """
     loaded = [Take(t) for t in takes]
     with Bars() as bars:

@@ -41,7 +41,7 @@ from manus_core.errors import ModelError
 from manus_core.validation import CLOSED, Bool, Float, Int, Str, between, validate, worded
 
 from . import decoding
-from .install import model_path
+from .install import int8_path, model_path
 from .runtime import Session
 
 NUM_JOINTS = 21
@@ -108,7 +108,6 @@ class MediaPipeHand(KeypointModel):
         if variant not in ("full", "lite", "int8"):
             raise ModelError(f"MediaPipe hand variant must be full, lite or int8, got {variant!r}")
         if path is None and variant == "int8":
-            from .quantize import int8_path
             path = int8_path()
         path = Path(path) if path is not None else model_path("mediapipe-hand", f"hand_landmark_{variant}")
         self.name = "mediapipe-hand" + ("" if variant == "full" else f"-{variant}")

@@ -25,18 +25,16 @@ import onnx
 import onnxruntime.quantization as ortq
 from onnx import version_converter
 
-from manus_core.errors import ModelError, ModelNotInstalledError
+from manus_core.errors import ModelError
 from manus_core.fileio import write_atomic
 from manus_core.progress import Progress, silent
 from manus_core.take import Take
 
 from . import boxes as bx
 from .detector import Detector, hand_keypoint_detector
-from .install import bundle_dir, model_path
+from .install import BUNDLE_INT8, INT8_STEM, bundle_dir
 from .models import MediaPipeHand
 
-BUNDLE = "mediapipe-hand"
-STEM = "hand_landmark_full_int8"
 RECORD = "int8.json"
 QDQ_OPSET = 13           # per-channel DequantizeLinear needs its `axis`, added in opset 13
 CALIBRATION_BATCH = 4    # crops per calibration run: the range-recording model holds every activation
@@ -45,17 +43,6 @@ CALIBRATION_BATCH = 4    # crops per calibration run: the range-recording model 
 # in the crop; with the first 8 in float, 0.04 and 0.5 px, at 4.9 against 8.5 ms a crop in float
 # (all quantized: 4.3 ms). Measured on 320 tracked crops of benchmarks/bench_stages.py's hand take.
 FLOAT_CONVS = 8
-
-
-def int8_path() -> Path:
-    """The quantized landmark model; ModelNotInstalledError naming the command when it is not made yet."""
-    path = bundle_dir(BUNDLE) / f"{STEM}.onnx"
-    if not path.is_file():
-        model_path(BUNDLE, "hand_landmark_full")          # not installed at all: say so first
-        raise ModelNotInstalledError(
-            f"{path}: no int8 hand landmark model yet: run `manus-capture models quantize {BUNDLE} "
-            "--calibration TAKE` on one or more of your takes")
-    return path
 
 
 def calibration_crops(takes: Sequence[Take], detector: Detector, crops: int = 64, min_score: float = 0.5,
@@ -104,8 +91,8 @@ def quantize_landmarks(takes: Sequence[Take], crops: int = 64, device: str = "cp
             batch = next(self.batches, None)
             return None if batch is None else {name: batch}
 
-    target = bundle_dir(BUNDLE) / f"{STEM}.onnx"
-    staged = target.with_name(f".{STEM}.{os.getpid()}.onnx")
+    target = bundle_dir(BUNDLE_INT8) / f"{INT8_STEM}.onnx"
+    staged = target.with_name(f".{INT8_STEM}.{os.getpid()}.onnx")
     floating = staged.with_suffix(".float.onnx")
     try:
         progress("quantize", 0, 1)

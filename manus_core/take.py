@@ -257,7 +257,7 @@ def video_packets(path: Path) -> Iterator[np.ndarray]:
 def _decode(packet: np.ndarray, path: Path, k: int) -> np.ndarray:
     # simplejpeg: the same libjpeg-turbo as OpenCV and the same pixels, in about half of imdecode's
     # time for the cube's 1280x720 frames. It refuses a scan that libjpeg decodes with a warning (a
-    # bit flipped on the link): OpenCV still decodes those, as the recorder's users always had them.
+    # bit flipped on the link): those go to OpenCV, which decodes them as it always did.
     try:
         return simplejpeg.decode_jpeg(packet, colorspace="BGR")
     except ValueError:

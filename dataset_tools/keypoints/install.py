@@ -13,7 +13,7 @@ Layout of the cache (`$XDG_CACHE_HOME` or `~/.cache`, then `manus-capture/`):
     models/mediapipe-hand/hand_landmark_full.onnx, hand_landmark_lite.onnx,
                           palm_detection_full.onnx, palm_detection_lite.onnx
     models/mediapipe-hand/tflite/*.tflite      the originals from the wheel
-    models/mediapipe-hand/hand_landmark_full_int8.onnx, int8.json
+    models/mediapipe-hand/hand_landmark_int8.onnx, int8.json
                                                after `models quantize` (quantize.py); gone with --force
     tools/tflite2onnx-0.4.1/                   the private converter environment (and TFLite runtime)
 """
@@ -42,9 +42,6 @@ from manus_core.errors import InstallError, ModelError, ModelNotInstalledError
 from manus_core.progress import Progress, silent
 
 INSTALL_HINT = "manus-capture models install {name}"
-# the full landmark model in int8, made by `models quantize` (quantize.py) beside the installed ones
-BUNDLE_INT8 = "mediapipe-hand"
-INT8_STEM = "hand_landmark_full_int8"
 
 # The converter environment is pinned: tflite2onnx is unmaintained since 2021, so only a set that
 # was seen to convert these models is trusted. The install check catches any drift regardless.
@@ -122,17 +119,6 @@ def model_path(name: str, stem: str) -> Path:
         raise ModelNotInstalledError(
             f"model {name!r} is not installed in {bundle_dir(name)}: run `{INSTALL_HINT.format(name=name)}`")
     return bundle_dir(name) / f"{stem}.onnx"
-
-
-def int8_path() -> Path:
-    """The quantized landmark model; ModelNotInstalledError naming the command when it is not made yet."""
-    path = bundle_dir(BUNDLE_INT8) / f"{INT8_STEM}.onnx"
-    if not path.is_file():
-        model_path(BUNDLE_INT8, "hand_landmark_full")          # not installed at all: say so first
-        raise ModelNotInstalledError(
-            f"{path}: no int8 hand landmark model yet: run `manus-capture models quantize {BUNDLE_INT8} "
-            "--calibration TAKE` on one or more of your takes")
-    return path
 
 
 def _sha256(path: Path) -> str:

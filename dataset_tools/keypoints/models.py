@@ -37,11 +37,11 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field
 
-from manus_core.errors import ModelError
+from manus_core.errors import ModelError, ModelNotInstalledError
 from manus_core.validation import CLOSED, Bool, Float, Int, Str, between, validate, worded
 
 from . import decoding
-from .install import int8_path, model_path
+from .install import model_path
 from .runtime import Session
 
 NUM_JOINTS = 21
@@ -107,9 +107,11 @@ class MediaPipeHand(KeypointModel):
                  threads: int | None = None, refine: int = 1) -> None:
         if variant not in ("full", "lite", "int8"):
             raise ModelError(f"MediaPipe hand variant must be full, lite or int8, got {variant!r}")
-        if path is None and variant == "int8":
-            path = int8_path()
         path = Path(path) if path is not None else model_path("mediapipe-hand", f"hand_landmark_{variant}")
+        if variant == "int8" and not path.is_file():
+            raise ModelNotInstalledError(
+                f"{path}: no int8 hand landmark model yet: run `manus-capture models quantize mediapipe-hand "
+                "--calibration TAKE` on one or more of your takes")
         self.name = "mediapipe-hand" + ("" if variant == "full" else f"-{variant}")
         self.session = Session(path, device=device, threads=threads)
         self.session.expect_input((None, 3, self.SIZE, self.SIZE))

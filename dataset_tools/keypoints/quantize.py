@@ -7,7 +7,7 @@ are the minimum and maximum each tensor reached on those crops. On an AVX-512 VN
 0.6 of the float model's time (docs/keypoints.md has the accuracy against the float model).
 
 Calibrating on the lab's own recordings, as TensorRT's int8 calibration does, gives the ranges of
-the lab's hands, light and cameras. The result is `hand_landmark_full_int8.onnx` beside the
+the lab's hands, light and cameras. The result is `hand_landmark_int8.onnx` beside the
 installed models, with `int8.json` (what it was calibrated on, and how far its keypoints are from
 the float model's on the calibration crops); `--model mediapipe-hand-int8` uses it.
 """
@@ -32,7 +32,7 @@ from manus_core.take import Take
 
 from . import boxes as bx
 from .detector import Detector, hand_keypoint_detector
-from .install import BUNDLE_INT8, INT8_STEM, bundle_dir
+from .install import model_path
 from .models import MediaPipeHand
 
 RECORD = "int8.json"
@@ -91,8 +91,8 @@ def quantize_landmarks(takes: Sequence[Take], crops: int = 64, device: str = "cp
             batch = next(self.batches, None)
             return None if batch is None else {name: batch}
 
-    target = bundle_dir(BUNDLE_INT8) / f"{INT8_STEM}.onnx"
-    staged = target.with_name(f".{INT8_STEM}.{os.getpid()}.onnx")
+    target = model_path("mediapipe-hand", "hand_landmark_int8")
+    staged = target.with_name(f".{target.stem}.{os.getpid()}.onnx")
     floating = staged.with_suffix(".float.onnx")
     try:
         progress("quantize", 0, 1)
@@ -135,7 +135,7 @@ def kept_in_float(graph: onnx.ModelProto) -> list[str]:
 def _agreement(detector: Detector, quantized: Path, x: np.ndarray, device: str) -> dict:
     """How far the int8 model's keypoints are from the float model's on the calibration crops (in
     crop pixels of 224), and its hand presence against theirs."""
-    int8 = MediaPipeHand("full", path=quantized, device=device)
+    int8 = MediaPipeHand("int8", path=quantized, device=device)
     a, b = detector.model(x), int8(x)
     distance = np.linalg.norm(a[..., :2] - b[..., :2], axis=-1)
     return {"median_px": round(float(np.median(distance)), 3),

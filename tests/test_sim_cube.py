@@ -174,6 +174,26 @@ def test_led_flash_shows_in_the_images():
     assert level[lit].min() > 1.5 * level[~lit].max()
 
 
+def test_sensor_noise_is_new_in_every_frame():
+    """A still scene stored at JPEG quality 100, 4:4:4: each frame's difference from the frames' mean
+    is the sensor noise, of the configured sigma (rounding and JPEG add under 1 grey level in
+    quadrature), and unrelated from one frame to the next: frames reading one window of noise would
+    correlate fully."""
+    sigma, n = 4.0, 16
+    rig = small_rig(cameras=1, resolution=(96, 54), noise_sigma=sigma)
+    rig = dataclasses.replace(rig, storage=dataclasses.replace(rig.storage, jpeg_quality=100, jpeg_chroma="444"))
+    cam = SimulatedCube(rig, "calibration").camera(rig.cameras[0].id)
+    cam.open(); cam.start()
+    frames = np.array([cv2.imdecode(np.frombuffer(cam.read().data, np.uint8), 1) for _ in range(n)], float)
+    residual = frames - frames.mean(axis=0)
+    assert 0.95 * sigma < residual.std() * np.sqrt(n / (n - 1)) < 1.1 * sigma
+    r = residual.reshape(n, -1)
+    # residuals about a common mean correlate by -1/(n-1); beyond that, 15k independent values
+    # stray by about 0.01
+    step = np.array([np.corrcoef(r[i], r[i + 1])[0, 1] for i in range(n - 1)]) + 1 / (n - 1)
+    assert np.abs(step).max() < 0.05
+
+
 def read_every_camera(cube, rig, frames: int) -> None:
     """Stream `frames` frames from each camera of the cube (what write_ground_truth then records)."""
     for c in rig.cameras:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -139,6 +140,16 @@ class SimulatedCube:
 RENDER_INSTANT_NS = 250_000
 
 
+@lru_cache(maxsize=4)
+def _noise_bank(seed: int, size: int) -> np.ndarray:
+    """Standard normal sensor noise for frames of `size` values, to be read at offsets: any two
+    frames' windows are apart by one of 2^18 offsets, so one pixel's noise in successive frames is
+    independent."""
+    bank = np.random.default_rng([seed, size, 98]).standard_normal(size + (1 << 18), dtype=np.float32)
+    bank.flags.writeable = False
+    return bank
+
+
 class SimCamera:
     """A simulated camera implementing rig.cameras.Camera."""
 
@@ -231,8 +242,12 @@ class SimCamera:
         return Frame(self._encode(image, k), k, device, host, self.config.width, self.config.height, "jpeg")
 
     def _encode(self, image: np.ndarray, k: int) -> bytes:
-        rng = np.random.default_rng([self._seed, self.index, k, 99])
-        noisy = image * 255.0 + rng.standard_normal(image.shape, dtype=np.float32) * self._noise_sigma
+        # the frame's noise is a window of the cube's noise at a seeded offset: drawing a frame's
+        # worth of normals cost 1.5 ms of the 1.9 ms that a 320x180 frame took to encode
+        bank = _noise_bank(self._seed, image.size)
+        start = np.random.default_rng([self._seed, self.index, k, 99]).integers(0, len(bank) - image.size + 1)
+        noise = bank[start:start + image.size].reshape(image.shape)
+        noisy = image * 255.0 + noise * np.float32(self._noise_sigma)
         ok, buf = cv2.imencode(".jpg", np.clip(noisy, 0, 255).astype(np.uint8), self._jpeg_params)
         if not ok:
             raise CameraError(f"camera {self.config.id}: JPEG encoding failed")

@@ -20,6 +20,7 @@ from dataset_tools.segmentation import (
     refine_edges,
     remove_small,
 )
+from dataset_tools.segmentation.background import median_of_frames
 from manus_core.errors import SegmentationError
 
 # The issue's targets hold at the cube's own resolution: a finger is ~16 px wide and a paint spot
@@ -74,6 +75,13 @@ def _grasp_ious(sim) -> tuple[float, float]:
     assert report["multiview"]["voxels"] > 0
     return iou(hand, (truth == 1) | (truth == 3)), iou(obj, truth == 2)
 
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 8, 16, 17])
+def test_median_of_frames_is_numpys_median(n):
+    """The sorting network gives np.median's very values, ties and an even count included."""
+    frames = np.random.default_rng(n).integers(0, 4, (n, 9, 7, 3)).astype(np.float32)
+    assert np.array_equal(median_of_frames(frames), np.median(frames, axis=0))
 
 def test_grasp_masks_against_truth(sim):
     hand, obj = _grasp_ious(sim)
@@ -219,6 +227,31 @@ def test_carving_survives_views_that_something_static_hides_the_hand_from():
     # the lower half is half the ball (measured 0.47 kept, 0.18 with one miss allowed)
     assert np.mean(kept[:, 2] < 0) > 0.4, np.mean(kept[:, 2] < 0)
     assert np.mean(strict[:, 2] < 0) < 0.25
+
+
+def test_carving_with_every_camera_at_one_height():
+    """Four cameras around the table at one height (the centres of the cube's walls): the ball is
+    carved, and blobs in one view alone are dropped, one of them at the image's corner. The box of
+    the camera centres per axis was flat there and carved nothing (every view's masks were left as
+    they were); a blob within 7 px of the bottom edge made the projection's window overhang the
+    image."""
+    from dataset_tools.segmentation.multiview import Occupancy, carve, consistent_masks, project_occupancy
+    from rig.layouts import make_rig
+    from rig.sim.cube import true_cameras
+
+    rig = true_cameras(make_rig("cube53", resolution=(160, 90))).subset(["x+11", "x-11", "y+11", "y-11"])
+    assert np.ptp(rig.centers[:, 2]) < 1e-6
+    g = np.arange(-0.04, 0.04001, 0.005)
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    ball = grid[np.linalg.norm(grid, axis=1) <= 0.04] + [0.0, 0.0, 0.1]
+    masks = project_occupancy(rig, Occupancy(ball, 0.005), (90, 160))
+    assert len(carve(rig, masks).centres) > 0
+    stray = masks.copy()
+    stray[0, 45:53, 20:28] = True
+    stray[0, 82:, 150:] = True
+    kept, report = consistent_masks(rig, stray)
+    assert report["voxels"] > 0
+    assert np.array_equal(kept, masks)
 
 
 def test_segmenting_a_take_reads_each_video_once(tmp_path, monkeypatch):

@@ -24,9 +24,10 @@ THRESHOLD_SIGMA = 3.0
 # a relative tolerance keeps bright walls from turning into foreground.
 RELATIVE_TOLERANCE = 0.03
 # The gain is the median ratio over a regular grid of about this many pixels: at 1280x720 every
-# 4th row and column, which gives the whole frame's median to ~1e-3 at a sixteenth of the cost
-# (320x180 is sampled whole).
-GAIN_SAMPLES = 50_000
+# 8th row and column, at 320x180 every 2nd. Each pixel's ratio is the gain within a percent or two
+# (sensor noise against channel sums of 100 or more), so the median of 14,400 is good to ~1e-4;
+# the 57,600 of every 4th row and column cost 0.76 ms a view at 1280x720.
+GAIN_SAMPLES = 12_500
 # Images this many rows high or more are first compared in blocks (1280x720: 4x4 px), so that the
 # per-pixel work is done only around the foreground: a hand is a few percent of a 1280x720 view.
 COARSE_HEIGHT = 180
@@ -50,12 +51,12 @@ class BackgroundModel:
         frames = np.asarray(frames, np.float32)
         if frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) == 0:
             raise SegmentationError(f"background: expected frames (N,H,W,3), got shape {frames.shape}")
-        first = np.median(frames, axis=0)
+        first = median_of_frames(frames)
         gains = np.array([estimate_gain(f, first) for f in frames], np.float32)
         normalised = frames / gains[:, None, None, None]
-        median = np.median(normalised, axis=0)
+        median = median_of_frames(normalised)
         if len(frames) >= 3:
-            mad = np.median(np.abs(normalised - median), axis=0).max(axis=-1) * 1.4826
+            mad = median_of_frames(np.abs(normalised - median)).max(axis=-1) * 1.4826
         else:
             mad = np.zeros(median.shape[:2], np.float32)
         return cls(median.astype(np.float32), np.maximum(mad, NOISE_FLOOR).astype(np.float32))
@@ -135,8 +136,7 @@ class BackgroundModel:
         by one block so that a block the foreground only grazes is inside."""
         small = self._blocks(block)
         h, w = small.median.shape[:2]
-        score2 = small._score2(cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA), inverse_gain,
-                               (slice(0, h), slice(0, w)))
+        score2 = small._score2(_block_means(image, block, (w, h)), inverse_gain, (slice(0, h), slice(0, w)))
         hit = (score2 > np.float32((threshold * BLOCK_SHARE) ** 2)).astype(np.uint8)
         hit = cv2.dilate(hit, np.ones((3, 3), np.uint8))
         n, _, stats, _ = cv2.connectedComponentsWithStats(hit, connectivity=8)
@@ -160,6 +160,31 @@ class BackgroundModel:
         return cache[block]
 
 
+def median_of_frames(frames: np.ndarray) -> np.ndarray:
+    """np.median(frames, axis=0), the same values, for a few frames (N,...): sorted by a network of
+    elementwise minima and maxima (odd-even transposition, N rounds). numpy partitions each pixel's
+    N values on its own: 0.2 s for 5 frames of 1280x720, against 0.02."""
+    n = len(frames)
+    if n > 16:
+        return np.median(frames, axis=0)
+    rows = [np.asarray(f) for f in frames]
+    for rnd in range(n):
+        for i in range(rnd % 2, n - 1, 2):
+            rows[i], rows[i + 1] = np.minimum(rows[i], rows[i + 1]), np.maximum(rows[i], rows[i + 1])
+    return rows[n // 2] if n % 2 else (rows[n // 2 - 1] + rows[n // 2]) / 2
+
+
+def _block_means(image: np.ndarray, block: int, size: tuple[int, int]) -> np.ndarray:
+    """The image's means over blocks of `block` px, `size` (w, h). A power of two is halved step by
+    step: OpenCV's area resize by 2 is 3.5x faster than by 4 (0.27 against 0.94 ms at 1280x720) and
+    rounds each step to a grey level (the means are off by up to 1, against a threshold of 4 sigmas
+    of 2.5 or more)."""
+    while block > 2 and block % 2 == 0:
+        image = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        block //= 2
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
 def channel_sum(image: np.ndarray) -> np.ndarray:
     """(H,W) float32 sum of an (H,W,3) image's channels (cv2.transform: numpy's sum over a last axis
     of 3 is several times slower)."""
@@ -172,8 +197,8 @@ def bounding_window(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     if not len(rows):
         return None
-    return (slice(max(rows[0] - margin, 0), rows[-1] + margin + 1),
-            slice(max(cols[0] - margin, 0), cols[-1] + margin + 1))
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, mask.shape[0])),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, mask.shape[1])))
 
 
 def _union(windows: list[tuple[slice, slice]]) -> tuple[slice, slice]:

@@ -30,7 +30,9 @@ _YCC = np.array([[0.114, 0.587, 0.299], [-0.0813, -0.4187, 0.5], [0.5, -0.3313, 
 
 
 def _ycc(image: np.ndarray) -> np.ndarray:
-    return np.asarray(image, np.float32) @ (_YCC.T * WEIGHTS)
+    # OpenCV's transform is 3x faster than numpy's matrix product over the last axis
+    image = np.asarray(image, np.float32)
+    return cv2.transform(image.reshape(-1, 1, 3), _YCC * WEIGHTS[:, None]).reshape(image.shape)
 
 
 def _pure_colours(image: np.ndarray, labels: np.ndarray, k: int, thin: bool, at: tuple[np.ndarray, np.ndarray]
@@ -104,10 +106,13 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
         names.append(k)
         near.append(close)
     reachable = np.stack(([np.ones(len(ys), bool)] if background is not None else []) + near)
-    # every pair of ends (a class with itself too: a pixel between two of its shades), each at every
-    # shade, all at once: (K, N, 3) for K pairs of colours
+    # every pair of ends, each at every shade, all at once: (K, N, 3) for K pairs of colours. A class
+    # with itself is one pair, its brightest shade to its darkest: the shades lie on one line through
+    # black, so that segment holds every pixel between two of them, and either end names the class
     shaded = [[e * f for f in (SHADES if n else (1.0,))] for e, n in zip(ends, names)]
-    pairs = [(i, j, x, y) for i in range(len(ends)) for j in range(i, len(ends)) for x in shaded[i] for y in shaded[j]]
+    pairs = [(i, i, shaded[i][0], shaded[i][-1]) if i == j else (i, j, x, y)
+             for i in range(len(ends)) for j in range(i, len(ends))
+             for x in shaded[i][:1 if i == j else None] for y in shaded[j][:1 if i == j else None]]
     first = np.array([names[i] for i, _, _, _ in pairs])
     second = np.array([names[j] for _, j, _, _ in pairs])
     start = np.stack([np.broadcast_to(end, pixel.shape) for _, _, _, end in pairs])

@@ -42,10 +42,11 @@ class Occupancy:
 
 def default_bounds(rig: CameraRig, margin: float = 0.1) -> np.ndarray:
     """The box (2,3) of the cube, shrunk by `margin` of its size: the world's origin is the cube's
-    centre (the tag layout fixes it), and the cameras sit on its walls, so the cube reaches as far
-    from the origin on each axis as the farthest camera. (The box of the camera centres alone
-    would cut off the table when no camera looks up from below it.)"""
-    half = np.abs(rig.centers).max(axis=0) * (1 - margin)
+    centre (the tag layout fixes it) and the cameras sit on its walls, so the cube reaches as far
+    from the origin as the farthest camera, on every axis. (Per axis, the box of the camera
+    centres cuts off the table when no camera looks up from below it, and is flat when the
+    cameras are: four cameras around the table at one height carved nothing.)"""
+    half = np.full(3, np.abs(rig.centers).max() * (1 - margin))
     return np.stack([-half, half])
 
 

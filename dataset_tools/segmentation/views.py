@@ -90,7 +90,7 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     unmixed against the background and the two classes (edges.refine_edges)."""
     gains = [None if bg is None else bg.gain(image) for image, bg in zip(images, backgrounds)]
     fg = foreground_masks(images, backgrounds, min_area, gains)
-    report: dict = {"foreground_px": fg.reshape(len(fg), -1).sum(axis=1).tolist()}
+    report: dict = {"foreground_px": [np.count_nonzero(m) for m in fg]}
     if rig is not None and np.count_nonzero(fg.reshape(len(fg), -1).any(axis=1)) >= 2:
         fg, report["multiview"] = consistent_masks(rig, fg)
     images = np.asarray(images)
@@ -98,13 +98,16 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     # part of a 1280x720 view): every pixel they look at is in it, so the labels are the same
     windows = [bounding_window(m, EDGE_MARGIN) for m in fg]
     is_object = np.zeros_like(fg) if object_model is None else _object_by_colour(images, fg, windows, object_model)
-    obj = np.zeros_like(fg)
-    hand = fg.copy()
+    obj = np.zeros(fg.shape, bool)
+    # each view's window is read from fg before the hand's labels replace it there
+    hand = fg
     for c, (image, window) in enumerate(zip(images, windows)):
         if window is None:
             continue
         labels = fg[c][window].astype(np.uint8)
-        labels[remove_small(is_object[c][window] & fg[c][window], min_area)] = 2
+        candidates = is_object[c][window] & fg[c][window]
+        if candidates.any():
+            labels[remove_small(candidates, min_area)] = 2
         labels = refine_edges(image[window], labels, backgrounds[c].at_brightness(image, window, gains[c]),
                                (1, 2), band=2)
         hand[c][window], obj[c][window] = labels == 1, labels == 2

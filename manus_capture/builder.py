@@ -29,9 +29,11 @@ from manus_capture.splat.takes import (
 )
 from manus_capture.splat.trainer import SURFACE_EPS2D, SURFEL_THIN_M, ObjectConfig, train_object
 from manus_capture.splat.trainer import evaluate as evaluate_object
-from manus_capture.template import capsule_template
+from manus_capture.template import SPACING_M, capsule_template, template_capsules
 from manus_core.cameras import CameraRig
 from manus_core.errors import BuildError, TakeInputError
+from manus_core.skeleton import HandSkeleton
+from rig.sim.shapes import capsule_distances, capsule_surface
 
 HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PSNR
 HELD_OUT_VIEWS = 6        # every 6th view of the object is kept out of training when it is scored
@@ -40,13 +42,55 @@ HELD_OUT_VIEWS = 6        # every 6th view of the object is kept out of training
 # centres move with 2.5x 3DGS's steps: 10x made them wander 2-3 mm (on a take with true poses,
 # masks and cameras) and settle 2.9 mm inside the hand's surface.
 HAND_MEANS_LR = 4e-4
+# The wrist the cameras see below the palm, which the template leaves out and surfels that only
+# move cannot grow (18-35 % of the hand's mask pixels went uncovered without it, docs/splat.md):
+# an elliptical cylinder with a rounded end, in parts of L, the wrist-to-middle-knuckle length,
+# from an adult's generic proportions (wrist about 0.63 L broad and 0.43 L deep). It runs from
+# inside the palm's base back to WRIST_REACH behind the wrist joint, its end cap beyond.
+WRIST_HALF_WIDTH, WRIST_HALF_DEPTH = 0.32, 0.22
+WRIST_START, WRIST_REACH = 0.10, 0.60
+WRIST_BONE = 8                 # the middle metacarpal: it moves with the wrist and nothing else
+# its points further apart than the template's: a smooth surface that touches nothing, and each
+# Gaussian costs refine and the trainer alike (at the template's spacing the hand had 48 % more
+# Gaussians and refine took 1.4 times as long)
+WRIST_SPACING_M = 1.4 * SPACING_M
+
+
+def _wrist(bone_lengths) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The wrist section's axis (its ends) and its half-width and half-depth, in metres."""
+    length = float(np.linalg.norm(HandSkeleton(bone_lengths).rest_joints()[9]))
+    ends = np.array([[0.0, WRIST_START, 0.0], [0.0, -WRIST_REACH, 0.0]]) * length
+    return ends[0], ends[1], WRIST_HALF_WIDTH * length, WRIST_HALF_DEPTH * length
+
+
+def wrist_section(bone_lengths=None, spacing: float = WRIST_SPACING_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points (K,3), outward normals and their bone (all WRIST_BONE) on the wrist section of the
+    rest hand (wrist at the origin, fingers along +y), about `spacing` apart."""
+    a, b, w, h = _wrist(bone_lengths)
+    # a round capsule of radius h stretched along x to half-width w: normals by the inverse stretch
+    points, normals = capsule_surface(a, b, h, spacing * h / w)
+    stretch = np.array([w / h, 1.0, 1.0])
+    normals = normals / stretch
+    return points * stretch, normals / np.linalg.norm(normals, axis=1, keepdims=True), np.full(len(points), WRIST_BONE)
+
+
+def in_wrist(points: np.ndarray, bone_lengths=None) -> np.ndarray:
+    """Whether rest-pose points (N,3) lie inside wrist_section's solid."""
+    a, b, w, h = _wrist(bone_lengths)
+    return capsule_distances(points * [h / w, 1.0, 1.0], a[None], b[None], np.array([h]))[:, 0] < 0
 
 
 def surface_hand(bone_lengths, sh_degree: int = 1) -> HandGaussians:
-    """A MANUS-Hand model of surfels on the capsule template of the subject's bone lengths."""
+    """A MANUS-Hand model of surfels on the capsule template of the subject's bone lengths and a
+    wrist section (wrist_section): the outer surface of their union."""
     template = capsule_template(bone_lengths)
-    return HandGaussians.on_surface(bone_lengths, template.points_rest, template.normals_rest, template.bone,
-                                    SURFEL_THIN_M, sh_degree=sh_degree)
+    points, normals, bones = wrist_section(bone_lengths)
+    outside = capsule_distances(points, *template_capsules(bone_lengths)).min(1) > 0
+    kept = ~in_wrist(template.points_rest, bone_lengths)
+    return HandGaussians.on_surface(bone_lengths, np.concatenate([template.points_rest[kept], points[outside]]),
+                                    np.concatenate([template.normals_rest[kept], normals[outside]]),
+                                    np.concatenate([template.bone[kept], bones[outside]]), SURFEL_THIN_M,
+                                    sh_degree=sh_degree)
 
 
 def surface_hand_config(iterations: int, **changes) -> HandConfig:

@@ -40,6 +40,7 @@ from manus_capture.report import ablation_png, keypoint_overlay, mask_comparison
 from manus_capture.splat.checkpoint import save_checkpoint
 from manus_capture.splat.takes import truth_cameras
 from manus_capture.splat.trainer import SURFACE_EPS2D
+from manus_capture.surface_score import surface_errors
 from manus_capture.template import capsule_template
 from manus_core.dataset import read_dataset
 from manus_core.errors import DemoError
@@ -234,6 +235,14 @@ class Demo:
                                           hand_iterations=c.hand_iterations, scale=c.scale, seed=c.seed)
         models = self.inputs.train(np.arange(len(self.rig)), evaluate=True)
         self.hand, self.object, metrics = models.hand, models.object, models.metrics
+        # the paper's claim in one number each: how near the learned hand and the template lie to
+        # the true skin (scoring only: the truth is read here, never by the training)
+        truth = GroundTruth.of_take(self.take["hand"])
+        joints = self.hand.skeleton.rest_joints()
+        for name, points in (("hand", self.hand.gaussians.means.detach().double().numpy()),
+                             ("template", capsule_template(self.hand.skeleton.bone_lengths).points_rest)):
+            errors = surface_errors(points, joints, truth.skin, truth.hand.rest_joints)
+            metrics.update({f"{name}_surface_{part}_mm": errors[f"{part}_mm"] for part in ("fingers", "palm")})
         self.models.mkdir(parents=True, exist_ok=True)
         blur = str(SURFACE_EPS2D)  # the splat blur the surfels were trained with (ModelInputs.train)
         save_checkpoint(self.models / "hand.safetensors", self.hand.gaussians, kind="hand",

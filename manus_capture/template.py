@@ -64,8 +64,8 @@ class PointHand:
         return {"means": means, "covars": covars}
 
 
-def capsule_template(bone_lengths=None, spacing: float = SPACING_M) -> PointHand:
-    """The template's surface for one subject's bone lengths (20,), points `spacing` apart."""
+def template_capsules(bone_lengths=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The template's capsule per bone in the rest pose: ends a (20,3), b (20,3) and radii (20,)."""
     skeleton = HandSkeleton(bone_lengths)
     scale = float(skeleton.bone_lengths.sum() / DEFAULT_BONE_LENGTHS.sum())
     joints = skeleton.rest_joints()
@@ -74,6 +74,13 @@ def capsule_template(bone_lengths=None, spacing: float = SPACING_M) -> PointHand
     tip = np.arange(20) % 4 == 3
     # the fingertip keypoint is the end of the finger: the distal capsule stops short of it
     b = np.where(tip[:, None], b - radius[:, None] * (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True), b)
+    return a, b, radius
+
+
+def capsule_template(bone_lengths=None, spacing: float = SPACING_M) -> PointHand:
+    """The template's surface for one subject's bone lengths (20,), points `spacing` apart."""
+    skeleton = HandSkeleton(bone_lengths)
+    a, b, radius = template_capsules(bone_lengths)
     points, normals, bones = [], [], []
     for k in range(20):
         p, n = capsule_surface(a[k], b[k], float(radius[k]), spacing)

@@ -29,11 +29,10 @@ from manus_capture.splat.takes import (
 )
 from manus_capture.splat.trainer import SURFACE_EPS2D, SURFEL_THIN_M, ObjectConfig, train_object
 from manus_capture.splat.trainer import evaluate as evaluate_object
-from manus_capture.template import SPACING_M, capsule_template, template_capsules
+from manus_capture.template import SPACING_M, capsule_distances, capsule_surface, capsule_template, template_capsules
 from manus_core.cameras import CameraRig
 from manus_core.errors import BuildError, TakeInputError
 from manus_core.skeleton import HandSkeleton
-from rig.sim.shapes import capsule_distances, capsule_surface
 
 HELD_OUT_POSES = 3        # hand poses kept out of training, for the held-out PSNR
 HELD_OUT_VIEWS = 6        # every 6th view of the object is kept out of training when it is scored

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from manus_capture.splat.hand import point_segment_distance
 from manus_core.skeleton import BONES, DEFAULT_BONE_LENGTHS, HandSkeleton
-from rig.sim.shapes import capsule_distances, capsule_surface
 
 # Generic radii (m) per bone of the average adult hand: metacarpal, proximal, middle, distal
 # phalanx (the thumb: carpal, metacarpal, proximal, distal).
@@ -26,6 +26,38 @@ TEMPLATE_RADII = np.array([
     [0.0100, 0.0085, 0.0075, 0.0068],
 ])
 SPACING_M = 0.0025
+
+
+def capsule_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Signed distance (N,M) of every point (N,3) to every capsule a (M,3) -> b (M,3), radius r (M,)."""
+    d = point_segment_distance(*(torch.as_tensor(np.asarray(x, np.float64)) for x in (p, a, b)))
+    return d.numpy() - np.asarray(r, np.float64)
+
+
+def capsule_surface(a: np.ndarray, b: np.ndarray, r: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points (K,3) and outward normals about `spacing` apart on one capsule: staggered rings on
+    the cylinder, a Fibonacci lattice on the two end caps."""
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    e = axis / length
+    u = np.cross(e, [0.0, 0.0, 1.0] if abs(e[2]) < 0.9 else [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(e, u)
+    n_ring = max(1, int(round(length / spacing)))
+    n_circ = max(6, int(round(2 * np.pi * r / spacing)))
+    z = (np.arange(n_ring) + 0.5) * length / n_ring
+    phi = 2 * np.pi * (np.arange(n_circ)[None, :] + 0.5 * (np.arange(n_ring)[:, None] % 2)) / n_circ
+    n_side = (np.cos(phi)[..., None] * u + np.sin(phi)[..., None] * v).reshape(-1, 3)
+    p_side = a + np.repeat(z, n_circ)[:, None] * e + r * n_side
+    n_sph = max(8, int(round(4 * np.pi * r * r / spacing ** 2)))
+    k = np.arange(n_sph) + 0.5
+    cos_t = 1 - 2 * k / n_sph
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    ang = np.pi * (1 + 5 ** 0.5) * k
+    n_cap = (cos_t[:, None] * e + sin_t[:, None] * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v))
+    low = n_cap @ e < 0
+    p_cap = np.where(low[:, None], a, b) + r * n_cap
+    return np.concatenate([p_side, p_cap]), np.concatenate([n_side, n_cap])
 
 
 class PointHand:

@@ -15,7 +15,7 @@ import torch
 
 from manus_capture.contacts import TAU_M, contact_value, hand_object_contacts, render_values, surface_value
 from manus_capture.evaluate import canonical_pose, mask_scores, pick_views, score_contacts, spread_cameras
-from manus_capture.template import PointHand, capsule_template
+from manus_capture.template import PointHand, capsule_distances, capsule_template
 from manus_core.errors import EvaluateError
 from rig.layouts import make_rig
 from rig.sim.cube import SimulatedCube
@@ -196,3 +196,11 @@ def test_contact_store_puts_ranges_together_in_any_order(tmp_path, on_disk):
         np.testing.assert_array_equal(f["S/t/contacts/object_accumulated"][()], whole.object_accumulated)
     np.testing.assert_allclose(store.totals, hand.sum(axis=1), rtol=1e-6)
     assert not (tmp_path / "store.h5").exists()
+
+
+def test_capsule_distances_each_point_against_each_capsule():
+    """The template's geometry (and the learned hand's start surface): signed, negative inside."""
+    a = np.array([[0, 0, 0], [1, 0, 0.0]])
+    b = np.array([[0, 0, 1], [1, 0, 1.0]])
+    d = capsule_distances(np.array([[0.5, 0, 0.5], [-1, 0, 2], [1.2, 0, 0.5]]), a, b, np.array([0.1, 0.3]))
+    np.testing.assert_allclose(d, [[0.4, 0.2], [np.sqrt(2) - 0.1, np.sqrt(5) - 0.3], [1.1, -0.1]])

@@ -66,11 +66,6 @@ def test_signed_distances():
     np.testing.assert_allclose(shapes.sdf_box(p, lo, hi), [-1, 1, np.sqrt(2), -0.5])
     p = np.array([[0, 0, 0], [3, 0, 0], [3, 0, 2], [0, 0, 1.5], [0.5, 0, 0]])
     np.testing.assert_allclose(shapes.sdf_cylinder(p, 1.0, -1.0, 1.0), [-1, 2, np.sqrt(5), 0.5, -0.5])
-    a = np.array([[0, 0, 0], [1, 0, 0.0]])
-    b = np.array([[0, 0, 1], [1, 0, 1.0]])
-    # the capsule template's (manus_capture/template.py): each point against each capsule
-    d = shapes.capsule_distances(np.array([[0.5, 0, 0.5], [-1, 0, 2], [1.2, 0, 0.5]]), a, b, np.array([0.1, 0.3]))
-    np.testing.assert_allclose(d, [[0.4, 0.2], [np.sqrt(2) - 0.1, np.sqrt(5) - 0.3], [1.1, -0.1]])
 
 
 def test_posed_shapes_round_trip():

@@ -182,8 +182,7 @@ def test_the_learned_hand_starts_with_a_wrist_that_moves_with_the_hand():
     from scipy.spatial import cKDTree
 
     from manus_capture.builder import in_wrist, surface_hand, wrist_section
-    from manus_capture.template import capsule_template, template_capsules
-    from rig.sim.shapes import capsule_distances
+    from manus_capture.template import capsule_distances, capsule_template, template_capsules
 
     template = capsule_template()
     model = surface_hand(None)

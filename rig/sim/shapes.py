@@ -107,14 +107,6 @@ def ray_cylinder(o: np.ndarray, d: np.ndarray, radius: float, z0: float, z1: flo
     return t, normal
 
 
-def _segment_closest(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Closest points on segments a-b to p; broadcasts (..., 3)."""
-    ab = b - a
-    den = np.maximum(np.sum(ab * ab, axis=-1), 1e-30)
-    s = np.clip(np.sum((p - a) * ab, axis=-1) / den, 0.0, 1.0)
-    return a + s[..., None] * ab
-
-
 def _norm3(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
     # Component-wise: reductions over a trailing axis of length 3 are slow in numpy.
     return np.sqrt(x * x + y * y + z * z)
@@ -142,36 +134,3 @@ def sdf_cylinder(p: np.ndarray, radius: float, z0: float, z1: float) -> np.ndarr
     qr = np.hypot(p[..., 0], p[..., 1]) - radius
     qz = np.abs(p[..., 2] - 0.5 * (z0 + z1)) - 0.5 * (z1 - z0)
     return np.hypot(np.maximum(qr, 0.0), np.maximum(qz, 0.0)) + np.minimum(np.maximum(qr, qz), 0.0)
-
-
-def capsule_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Signed distance (N,M) of every point to every capsule (no blocking: keep N*M moderate)."""
-    q = _float(p)[:, None, :]
-    a, b, r = (np.asarray(x, dtype=q.dtype) for x in (a, b, r))
-    return np.linalg.norm(q - _segment_closest(q, a[None], b[None]), axis=-1) - r
-
-
-def capsule_surface(a: np.ndarray, b: np.ndarray, r: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-    """Points (K,3) and outward normals about `spacing` apart on one capsule: staggered rings on
-    the cylinder, a Fibonacci lattice on the two end caps."""
-    axis = b - a
-    length = float(np.linalg.norm(axis))
-    e = axis / length
-    u = np.cross(e, [0.0, 0.0, 1.0] if abs(e[2]) < 0.9 else [1.0, 0.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(e, u)
-    n_ring = max(1, int(round(length / spacing)))
-    n_circ = max(6, int(round(2 * np.pi * r / spacing)))
-    z = (np.arange(n_ring) + 0.5) * length / n_ring
-    phi = 2 * np.pi * (np.arange(n_circ)[None, :] + 0.5 * (np.arange(n_ring)[:, None] % 2)) / n_circ
-    n_side = (np.cos(phi)[..., None] * u + np.sin(phi)[..., None] * v).reshape(-1, 3)
-    p_side = a + np.repeat(z, n_circ)[:, None] * e + r * n_side
-    n_sph = max(8, int(round(4 * np.pi * r * r / spacing ** 2)))
-    k = np.arange(n_sph) + 0.5
-    cos_t = 1 - 2 * k / n_sph
-    sin_t = np.sqrt(1 - cos_t ** 2)
-    ang = np.pi * (1 + 5 ** 0.5) * k
-    n_cap = (cos_t[:, None] * e + sin_t[:, None] * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v))
-    low = n_cap @ e < 0
-    p_cap = np.where(low[:, None], a, b) + r * n_cap
-    return np.concatenate([p_side, p_cap]), np.concatenate([n_side, n_cap])

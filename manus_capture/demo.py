@@ -176,27 +176,12 @@ class Demo:
             raise DemoError(f"annotate failed: {summary.failed}")
         data = read_dataset(self.dataset)
         grasp = data[take_key(self.take["grasp"])]
-        truth = self._truth_at_groups(self.take["grasp"], grasp.frame_ns)
+        truth = truth_at_groups(self.take["grasp"], grasp.frame_ns)
         tri = np.linalg.norm(grasp.keypoints3d - truth["joints3d"], axis=-1)
-        fitted, angles = self._pose_errors(grasp.bone_lengths, grasp.joint_angles, truth)
+        fitted, angles = pose_errors(grasp.bone_lengths, grasp.joint_angles, truth)
         return {"frames": len(grasp.frame_ns), "triangulated_mpjpe_mm": 1000 * float(np.nanmean(tri)),
                 "fitted_mpjpe_mm": fitted, "finger_angle_rms_deg": angles,
                 "bone_length_err_mm": 1000 * float(np.abs(grasp.bone_lengths - truth["bone_lengths"]).max())}
-
-    @staticmethod
-    def _pose_errors(bone_lengths: np.ndarray, angles: np.ndarray, truth: dict) -> tuple[float, float]:
-        """(fitted joints' mean error in mm, finger angles' RMS error in degrees) against the truth."""
-        fitted = HandSkeleton(bone_lengths).forward(angles)
-        fit = np.linalg.norm(fitted - truth["joints3d"], axis=-1)
-        ang = np.degrees(angles[:, 6:] - truth["joint_angles"][:, 6:])
-        return 1000 * float(np.nanmean(fit)), float(np.sqrt(np.nanmean(ang ** 2)))
-
-    def _truth_at_groups(self, take: Path, frame_ns: np.ndarray) -> dict:
-        gt = GroundTruth.of_take(take)
-        hand = gt.hand
-        tick = np.clip(gt.tick_at(frame_ns), 0, len(hand.joints3d) - 1)
-        return {"joints3d": hand.joints3d[tick], "joint_angles": hand.joint_angles[tick],
-                "bone_lengths": hand.bone_lengths}
 
     def segment(self) -> dict:
         rig = load_cameras(self.calib)
@@ -264,8 +249,8 @@ class Demo:
             write_refined(self.dataset, key, result, {"demo": True})
             if kind == "grasp":
                 ann = read_dataset(self.dataset)[key]
-                truth = self._truth_at_groups(self.take[kind], ann.frame_ns)
-                fitted, angles = self._pose_errors(ann.bone_lengths, result.angles, truth)
+                truth = truth_at_groups(self.take[kind], ann.frame_ns)
+                fitted, angles = pose_errors(ann.bone_lengths, result.angles, truth)
                 metrics.update(fitted_mpjpe_mm_refined=fitted, finger_angle_rms_deg_refined=angles,
                                frames_refined=result.frames_refined, frames_diverged=result.frames_diverged,
                                refine_frames_per_s=result.frames_refined / max(result.seconds, 1e-9))
@@ -322,6 +307,24 @@ class Demo:
         return {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
                 "baseline_f1": baseline.mean_f1, "contact_iou_vs_true_paint": true_paint.mean_iou,
                 "views": {str(k): v.mean_iou for k, v in sorted(ablation.items())}}
+
+
+def truth_at_groups(take: Path, frame_ns: np.ndarray) -> dict:
+    """The simulator's joints (T,21,3), joint angles (T,26) at each frame group, and bone lengths
+    (scoring only)."""
+    gt = GroundTruth.of_take(take)
+    hand = gt.hand
+    tick = np.clip(gt.tick_at(frame_ns), 0, len(hand.joints3d) - 1)
+    return {"joints3d": hand.joints3d[tick], "joint_angles": hand.joint_angles[tick],
+            "bone_lengths": hand.bone_lengths}
+
+
+def pose_errors(bone_lengths: np.ndarray, angles: np.ndarray, truth: dict) -> tuple[float, float]:
+    """(fitted joints' mean error in mm, finger angles' RMS error in degrees) against the truth."""
+    fitted = HandSkeleton(bone_lengths).forward(angles)
+    fit = np.linalg.norm(fitted - truth["joints3d"], axis=-1)
+    ang = np.degrees(angles[:, 6:] - truth["joint_angles"][:, 6:])
+    return 1000 * float(np.nanmean(fit)), float(np.sqrt(np.nanmean(ang ** 2)))
 
 
 def camera_errors(rig, truth) -> dict:

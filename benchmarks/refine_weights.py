@@ -33,14 +33,16 @@ CANDIDATES = ("", "prior_deg=20,smooth_deg=2,keypoint_scale_px=3", "prior_deg=30
 
 
 def _options(text: str, iterations: int) -> RefineOptions:
-    fields = {f.name: f.type for f in dataclasses.fields(RefineOptions)}
+    """RefineOptions from NAME=VALUE,... (each value of its field's default's type)."""
+    names = {f.name for f in dataclasses.fields(RefineOptions)}
     values = {}
     for item in filter(None, text.split(",")):
         name, _, value = item.partition("=")
-        if name not in fields:
+        if name not in names:
             raise SystemExit(f"--set {text}: {name!r} is not a RefineOptions field")
-        values[name] = float(value)
-    return RefineOptions(iterations=iterations, **values)
+        default = getattr(RefineOptions, name)
+        values[name] = value if default is None else type(default)(value)
+    return RefineOptions(**{"iterations": iterations, **values})
 
 
 def _demo_rows(demo: Path, sets: list[str], iterations: int) -> list[tuple[float, float]]:

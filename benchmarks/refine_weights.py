@@ -40,8 +40,7 @@ def _options(text: str, iterations: int) -> RefineOptions:
         name, _, value = item.partition("=")
         if name not in names:
             raise SystemExit(f"--set {text}: {name!r} is not a RefineOptions field")
-        default = getattr(RefineOptions, name)
-        values[name] = value if default is None else type(default)(value)
+        values[name] = type(getattr(RefineOptions, name))(value)
     return RefineOptions(**{"iterations": iterations, **values})
 
 

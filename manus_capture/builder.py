@@ -155,6 +155,18 @@ class ModelInputs:
         return cls(rig, Path(hand_take), Path(object_take), frames, train, test, train_masks, test_masks,
                    object_masks, **settings)
 
+    def train_hand(self, cams: np.ndarray) -> HandGaussians:
+        """MANUS-Hand trained on the cameras `cams` (indices into rig): surfels on the template and
+        the wrist (surface_hand), hand_iterations steps on windows around the masks."""
+        cams = np.asarray(cams)
+        sub = self.rig.subset([self.rig.ids[i] for i in cams])
+        poses, hand_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.train_rows,
+                                                 masks=self.train_masks[:, cams], scale=self.scale)
+        hand = surface_hand(self.hand_frames.bone_lengths)
+        train_hand(hand, poses, [crop_views(v) for v in hand_views],
+                   surface_hand_config(self.hand_iterations, seed=self.seed))
+        return hand
+
     def train(self, cams: np.ndarray, evaluate: bool = False) -> TrainedModels:
         """Both models trained on the cameras `cams` (indices into rig); with `evaluate`, their
         metrics too."""
@@ -170,11 +182,7 @@ class ModelInputs:
         held &= evaluate and len(views) > 1
         obj = train_object(crop_views(views.subset(np.flatnonzero(~held))),
                            ObjectConfig.surfels(self.object_iterations, seed=self.seed)).gaussians
-        poses, hand_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.train_rows,
-                                                 masks=self.train_masks[:, cams], scale=self.scale)
-        hand = surface_hand(self.hand_frames.bone_lengths)
-        train_hand(hand, poses, [crop_views(v) for v in hand_views],
-                   surface_hand_config(self.hand_iterations, seed=self.seed))
+        hand = self.train_hand(cams)
         metrics = {}
         if evaluate:
             test_poses, test_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.test_rows,

@@ -1,0 +1,122 @@
+"""Where MANUS-Hand's held-out PSNR on the hand's pixels goes, on a finished demo.
+
+    python benchmarks/hand_appearance.py DEMO [--iterations 400]
+
+DEMO is the output folder of `manus-capture demo`. MANUS-Hand is trained as the demo trains it
+(ModelInputs: the hand take's poses from annotate, segment's hand masks, every camera), once more
+with the simulator's true joint angles and bone lengths in their place (an ablation: scoring
+code may read the truth, the pipeline never does), and each is scored on the held-out poses:
+
+- the PSNR on the hand's mask, as the demo reports it (`hand_psnr_mask_db`);
+- the same split by each pixel's distance to the mask's edge: share of the mask's pixels, PSNR,
+  share of the squared error, and the share the model leaves uncovered (alpha under 0.5);
+- the texture floor: the PSNR, on the pixels over 2.5 px inside the mask, of the image blurred
+  by a Gaussian of 1 px against itself, what a model as sharp as that but exact in shape and
+  colour would score there.
+
+Prints markdown tables, the figures docs/splat.md quotes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from dataset_tools.annotate import take_key
+from dataset_tools.calibration.formats import load_cameras
+from manus_capture.builder import ModelInputs
+from manus_capture.demo import truth_at_groups
+from manus_capture.splat.takes import hand_views_from_take
+from manus_capture.splat.trainer import SURFACE_EPS2D
+from manus_core.dataset import read_dataset
+
+BANDS = ((0.0, 1.5), (1.5, 2.5), (2.5, 4.0), (4.0, 7.0), (7.0, np.inf))   # px from the mask's edge
+INNER_PX = 2.5
+
+
+def _psnr(squared: float, count: float) -> float:
+    return float(-10 * np.log10(squared / max(count, 1)))
+
+
+def band_scores(rendered: np.ndarray, alpha: np.ndarray, images: np.ndarray, masks: np.ndarray) -> list[dict]:
+    """Per band of BANDS over views (V,H,W,...): share of mask pixels, PSNR, share of the squared
+    error, share uncovered (alpha < 0.5)."""
+    dist = np.stack([cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, 3) for m in masks])
+    error = ((rendered - images * masks[..., None]) ** 2).sum(-1)
+    total_px, total_err = masks.sum(), error[masks].sum()
+    rows = []
+    for lo, hi in BANDS:
+        sel = masks & (dist > lo) & (dist <= hi)
+        rows.append({"band": (lo, hi), "share": sel.sum() / total_px, "psnr": _psnr(error[sel].sum(), 3 * sel.sum()),
+                     "error_share": error[sel].sum() / total_err, "uncovered": (alpha[sel] < 0.5).mean()})
+    return rows
+
+
+def texture_floor(images: np.ndarray, masks: np.ndarray, sigma: float = 1.0) -> float:
+    """PSNR over the pixels more than INNER_PX inside the masks of the images blurred within their
+    masks (normalized convolution) against the images."""
+    squared = count = 0.0
+    for image, mask in zip(images, masks):
+        m = mask.astype(np.float32)
+        blurred = cv2.GaussianBlur(image * m[..., None], (0, 0), sigma)
+        blurred /= np.maximum(cv2.GaussianBlur(m, (0, 0), sigma), 1e-6)[..., None]
+        inner = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 3) > INNER_PX
+        squared += ((blurred - image)[inner] ** 2).sum()
+        count += 3 * inner.sum()
+    return _psnr(squared, count)
+
+
+def _score(inputs: ModelInputs) -> tuple[float, list[dict], np.ndarray, np.ndarray]:
+    """Train on every camera; held-out PSNR on the mask and the band rows; the views' images and masks."""
+    hand = inputs.train_hand(np.arange(len(inputs.rig)))
+    poses, views = hand_views_from_take(inputs.hand_take, inputs.rig, inputs.hand_frames, inputs.test_rows,
+                                        masks=inputs.test_masks)
+    rendered, alphas, images, masks = [], [], [], []
+    with torch.no_grad():
+        for pose, view in zip(poses, views):
+            if not len(view):
+                continue
+            rgb, alpha = hand.render(pose, view.viewmats, view.Ks, view.width, view.height, torch.zeros(3),
+                                     eps2d=SURFACE_EPS2D)
+            rendered.append(rgb.clamp(0, 1).numpy())
+            alphas.append(alpha[..., 0].numpy())
+            images.append(view.images.numpy())
+            masks.append(view.masks.numpy())
+    rendered, alphas, images, masks = (np.concatenate(x) for x in (rendered, alphas, images, masks))
+    # the demo's figure: the mean over views of each view's PSNR on its mask
+    per_view = [_psnr(((r - i)[m] ** 2).sum(), 3 * m.sum()) for r, i, m in zip(rendered, images, masks)]
+    return float(np.mean(per_view)), band_scores(rendered, alphas, images, masks), images, masks
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("demo", type=Path)
+    parser.add_argument("--iterations", type=int, default=400, help="hand training steps (the demo's default)")
+    args = parser.parse_args()
+    session = args.demo / "session"
+    hand_take, object_take, background = (next(session.glob(f"*-{kind}*"))
+                                          for kind in ("hand", "object", "calibration"))
+    dataset = args.demo / "DATASET.h5"
+    inputs = ModelInputs.prepare(load_cameras(args.demo / "calib"), dataset, hand_take, object_take, background,
+                                 hand_iterations=args.iterations)
+    truth = truth_at_groups(hand_take, read_dataset(dataset)[take_key(hand_take)].frame_ns)
+    true_frames = dataclasses.replace(inputs.hand_frames, angles=truth["joint_angles"],
+                                      bone_lengths=truth["bone_lengths"])
+    print("| poses | hand PSNR on the mask (dB) | " + " | ".join(f"{lo:g}-{hi:g} px" for lo, hi in BANDS) + " |")
+    print("|---|---|" + "---|" * len(BANDS))
+    for name, frames in (("annotate", inputs.hand_frames), ("true (ablation)", true_frames)):
+        psnr, bands, images, masks = _score(dataclasses.replace(inputs, hand_frames=frames))
+        cells = " | ".join(f"{b['psnr']:.1f} dB, {100 * b['share']:.0f} % of pixels, {100 * b['error_share']:.0f} % of "
+                           f"error, {100 * b['uncovered']:.0f} % uncovered" for b in bands)
+        print(f"| {name} | {psnr:.2f} | {cells} |", flush=True)
+    print(f"\ntexture floor: the held-out images blurred by 1 px against themselves, over {INNER_PX:g} px inside "
+          f"the mask: {texture_floor(images, masks):.1f} dB")
+
+
+if __name__ == "__main__":
+    main()

@@ -73,7 +73,7 @@ def texture_floor(images: np.ndarray, masks: np.ndarray, sigma: float = 1.0) -> 
 
 def _score(inputs: ModelInputs) -> tuple[float, list[dict], np.ndarray, np.ndarray]:
     """Train on every camera; held-out PSNR on the mask and the band rows; the views' images and masks."""
-    hand = inputs.train_hand(np.arange(len(inputs.rig)))
+    hand = inputs.train_hand_model(np.arange(len(inputs.rig)))
     poses, views = hand_views_from_take(inputs.hand_take, inputs.rig, inputs.hand_frames, inputs.test_rows,
                                         masks=inputs.test_masks)
     rendered, alphas, images, masks = [], [], [], []

@@ -155,7 +155,7 @@ class ModelInputs:
         return cls(rig, Path(hand_take), Path(object_take), frames, train, test, train_masks, test_masks,
                    object_masks, **settings)
 
-    def train_hand(self, cams: np.ndarray) -> HandGaussians:
+    def train_hand_model(self, cams: np.ndarray) -> HandGaussians:
         """MANUS-Hand trained on the cameras `cams` (indices into rig): surfels on the template and
         the wrist (surface_hand), hand_iterations steps on windows around the masks."""
         cams = np.asarray(cams)
@@ -182,7 +182,7 @@ class ModelInputs:
         held &= evaluate and len(views) > 1
         obj = train_object(crop_views(views.subset(np.flatnonzero(~held))),
                            ObjectConfig.surfels(self.object_iterations, seed=self.seed)).gaussians
-        hand = self.train_hand(cams)
+        hand = self.train_hand_model(cams)
         metrics = {}
         if evaluate:
             test_poses, test_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.test_rows,

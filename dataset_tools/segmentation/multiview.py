@@ -182,12 +182,14 @@ def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, in
     return out
 
 
-def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2, **carve_options) -> tuple[np.ndarray, dict]:
+def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
+                     **carve_options) -> tuple[np.ndarray, dict]:
     """Masks (C,H,W) made consistent across the views, and a report.
 
-    Each view keeps its own (pixel-accurate) foreground where the carved volume supports it
-    (within `support_px`), and gets its holes filled where the volume covers them. All of it
-    happens inside the mask's box: what is kept lies in the mask, and a hole is enclosed by it."""
+    Each view keeps every connected part of its own (pixel-accurate) foreground that the carved
+    volume supports somewhere (within `support_px`), drops the parts it supports nowhere, and gets
+    its holes filled where the volume covers them. All of it happens inside the mask's box: what
+    is kept lies in the mask, and a hole is enclosed by it."""
     masks = np.asarray(masks, bool)
     occupancy = carve(rig, masks, **carve_options)
     if not len(occupancy.centres):
@@ -207,7 +209,14 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2, **c
             filled.append(0)
             continue
         mask, proj = mask[window], proj[window]
-        kept = mask & (cv2.dilate(proj.astype(np.uint8), kernel) > 0)
+        # whole parts, not pixels: a voxel needs hits in nearly every view that sees it, and what
+        # something static hides from several views is carved away though the others see it (the
+        # forearm below a raised hand, behind the table from the floor's and the low cameras:
+        # 11-21 % of a hand take's foreground pixels were dropped, the wrist and forearm in the
+        # side views, and MANUS-Hand learnt from masks that cut the arm off in some views only)
+        _, parts = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+        supported = np.unique(parts[mask & (cv2.dilate(proj.astype(np.uint8), kernel) > 0)])
+        kept = np.isin(parts, supported[supported > 0])
         done = kept | (fill_holes(kept) & proj)
         out[c][window] = done
         dropped.append(int(np.count_nonzero(mask & ~kept)))

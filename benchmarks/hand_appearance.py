@@ -30,7 +30,8 @@ import torch
 from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.builder import ModelInputs
-from manus_capture.demo import truth_at_groups
+from manus_capture.pose_score import truth_at_groups
+from manus_capture.splat.hand import evaluate_hand
 from manus_capture.splat.takes import hand_views_from_take
 from manus_capture.splat.trainer import SURFACE_EPS2D
 from manus_core.dataset import read_dataset
@@ -88,9 +89,8 @@ def _score(inputs: ModelInputs) -> tuple[float, list[dict], np.ndarray, np.ndarr
             images.append(view.images.numpy())
             masks.append(view.masks.numpy())
     rendered, alphas, images, masks = (np.concatenate(x) for x in (rendered, alphas, images, masks))
-    # the demo's figure: the mean over views of each view's PSNR on its mask
-    per_view = [_psnr(((r - i)[m] ** 2).sum(), 3 * m.sum()) for r, i, m in zip(rendered, images, masks)]
-    return float(np.mean(per_view)), band_scores(rendered, alphas, images, masks), images, masks
+    demo_figure = evaluate_hand(hand, poses, views, eps2d=SURFACE_EPS2D)["psnr_mask"]
+    return demo_figure, band_scores(rendered, alphas, images, masks), images, masks
 
 
 def main() -> None:

@@ -22,7 +22,7 @@ import numpy as np
 
 from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
-from manus_capture.demo import pose_errors, truth_at_groups
+from manus_capture.pose_score import pose_errors, truth_at_groups
 from manus_capture.refine import RefineOptions, fit_poses
 from manus_capture.refine_views import pose_views
 from manus_capture.splat.checkpoint import load_checkpoint

@@ -35,6 +35,7 @@ from manus_capture.evaluate import (
     score_contacts,
     spread_cameras,
 )
+from manus_capture.pose_score import pose_errors, truth_at_groups
 from manus_capture.refine import RefineOptions, refine_take, write_refined
 from manus_capture.report import ablation_png, keypoint_overlay, mask_comparison, write_html
 from manus_capture.splat.checkpoint import save_checkpoint
@@ -307,24 +308,6 @@ class Demo:
         return {"contact_iou": ours.mean_iou, "contact_f1": ours.mean_f1, "baseline_iou": baseline.mean_iou,
                 "baseline_f1": baseline.mean_f1, "contact_iou_vs_true_paint": true_paint.mean_iou,
                 "views": {str(k): v.mean_iou for k, v in sorted(ablation.items())}}
-
-
-def truth_at_groups(take: Path, frame_ns: np.ndarray) -> dict:
-    """The simulator's joints (T,21,3), joint angles (T,26) at each frame group, and bone lengths
-    (scoring only)."""
-    gt = GroundTruth.of_take(take)
-    hand = gt.hand
-    tick = np.clip(gt.tick_at(frame_ns), 0, len(hand.joints3d) - 1)
-    return {"joints3d": hand.joints3d[tick], "joint_angles": hand.joint_angles[tick],
-            "bone_lengths": hand.bone_lengths}
-
-
-def pose_errors(bone_lengths: np.ndarray, angles: np.ndarray, truth: dict) -> tuple[float, float]:
-    """(fitted joints' mean error in mm, finger angles' RMS error in degrees) against the truth."""
-    fitted = HandSkeleton(bone_lengths).forward(angles)
-    fit = np.linalg.norm(fitted - truth["joints3d"], axis=-1)
-    ang = np.degrees(angles[:, 6:] - truth["joint_angles"][:, 6:])
-    return 1000 * float(np.nanmean(fit)), float(np.sqrt(np.nanmean(ang ** 2)))
 
 
 def camera_errors(rig, truth) -> dict:

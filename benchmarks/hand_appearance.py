@@ -7,7 +7,8 @@ DEMO is the output folder of `manus-capture demo`. MANUS-Hand is trained as the 
 with the simulator's true joint angles and bone lengths in their place (an ablation: scoring
 code may read the truth, the pipeline never does), and each is scored on the held-out poses:
 
-- the PSNR on the hand's mask, as the demo reports it (`hand_psnr_mask_db`);
+- the PSNR on the hand's mask, as the demo reports it (`hand_psnr_mask_db`: the hand rendered over
+  the empty cube, as the cameras see it), and rendered over black as before;
 - the same split by each pixel's distance to the mask's edge: share of the mask's pixels, PSNR,
   share of the squared error, and the share the model leaves uncovered (alpha under 0.5);
 - the texture floor: the PSNR, on the pixels over 2.5 px inside the mask, of the image blurred
@@ -44,11 +45,11 @@ def _psnr(squared: float, count: float) -> float:
     return float(-10 * np.log10(squared / max(count, 1)))
 
 
-def band_scores(rendered: np.ndarray, alpha: np.ndarray, images: np.ndarray, masks: np.ndarray) -> list[dict]:
+def band_scores(rendered: np.ndarray, alpha: np.ndarray, targets: np.ndarray, masks: np.ndarray) -> list[dict]:
     """Per band of BANDS over views (V,H,W,...): share of mask pixels, PSNR, share of the squared
     error, share uncovered (alpha < 0.5)."""
     dist = np.stack([cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, 3) for m in masks])
-    error = ((rendered - images * masks[..., None]) ** 2).sum(-1)
+    error = ((rendered - targets) ** 2).sum(-1)
     total_px, total_err = masks.sum(), error[masks].sum()
     rows = []
     for lo, hi in BANDS:
@@ -72,25 +73,30 @@ def texture_floor(images: np.ndarray, masks: np.ndarray, sigma: float = 1.0) -> 
     return _psnr(squared, count)
 
 
-def _score(inputs: ModelInputs) -> tuple[float, list[dict], np.ndarray, np.ndarray]:
-    """Train on every camera; held-out PSNR on the mask and the band rows; the views' images and masks."""
+def _score(inputs: ModelInputs) -> tuple[float, float, list[dict], np.ndarray, np.ndarray]:
+    """Train on every camera; held-out PSNR on the mask (over the empty scene, and over black)
+    and the band rows; the views' images and masks."""
     hand = inputs.train_hand_model(np.arange(len(inputs.rig)))
     poses, views = hand_views_from_take(inputs.hand_take, inputs.rig, inputs.hand_frames, inputs.test_rows,
-                                        masks=inputs.test_masks)
-    rendered, alphas, images, masks = [], [], [], []
+                                        masks=inputs.test_masks, behind=inputs.behind)
+    black = torch.zeros(3)
+    rendered, alphas, targets, images, masks = [], [], [], [], []
     with torch.no_grad():
         for pose, view in zip(poses, views):
             if not len(view):
                 continue
-            rgb, alpha = hand.render(pose, view.viewmats, view.Ks, view.width, view.height, torch.zeros(3),
+            rgb, alpha = hand.render(pose, view.viewmats, view.Ks, view.width, view.height, black,
                                      eps2d=SURFACE_EPS2D)
-            rendered.append(rgb.clamp(0, 1).numpy())
+            rendered.append(view.composite(rgb, alpha, black).clamp(0, 1).numpy())
             alphas.append(alpha[..., 0].numpy())
+            targets.append(view.targets(black).numpy())
             images.append(view.images.numpy())
             masks.append(view.masks.numpy())
-    rendered, alphas, images, masks = (np.concatenate(x) for x in (rendered, alphas, images, masks))
+    rendered, alphas, targets, images, masks = (np.concatenate(x) for x in (rendered, alphas, targets, images, masks))
     demo_figure = evaluate_hand(hand, poses, views, eps2d=SURFACE_EPS2D)["psnr_mask"]
-    return demo_figure, band_scores(rendered, alphas, images, masks), images, masks
+    on_black = evaluate_hand(hand, poses, [dataclasses.replace(v, backgrounds=None) for v in views],
+                             eps2d=SURFACE_EPS2D)["psnr_mask"]
+    return demo_figure, on_black, band_scores(rendered, alphas, targets, masks), images, masks
 
 
 def main() -> None:
@@ -107,13 +113,14 @@ def main() -> None:
     truth = truth_at_groups(hand_take, read_dataset(dataset)[take_key(hand_take)].frame_ns)
     true_frames = dataclasses.replace(inputs.hand_frames, angles=truth["joint_angles"],
                                       bone_lengths=truth["bone_lengths"])
-    print("| poses | hand PSNR on the mask (dB) | " + " | ".join(f"{lo:g}-{hi:g} px" for lo, hi in BANDS) + " |")
-    print("|---|---|" + "---|" * len(BANDS))
+    print("| poses | hand PSNR on the mask (dB) | over black | " + " | ".join(f"{lo:g}-{hi:g} px" for lo, hi in BANDS)
+          + " |")
+    print("|---|---|---|" + "---|" * len(BANDS))
     for name, frames in (("annotate", inputs.hand_frames), ("true (ablation)", true_frames)):
-        psnr, bands, images, masks = _score(dataclasses.replace(inputs, hand_frames=frames))
+        psnr, on_black, bands, images, masks = _score(dataclasses.replace(inputs, hand_frames=frames))
         cells = " | ".join(f"{b['psnr']:.1f} dB, {100 * b['share']:.0f} % of pixels, {100 * b['error_share']:.0f} % of "
                            f"error, {100 * b['uncovered']:.0f} % uncovered" for b in bands)
-        print(f"| {name} | {psnr:.2f} | {cells} |", flush=True)
+        print(f"| {name} | {psnr:.2f} | {on_black:.2f} | {cells} |", flush=True)
     print(f"\ntexture floor: the held-out images blurred by 1 px against themselves, over {INNER_PX:g} px inside "
           f"the mask: {texture_floor(images, masks):.1f} dB")
 

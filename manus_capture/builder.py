@@ -7,6 +7,7 @@ cameras: everything they are trained from is gathered once (frames, masks, poses
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from manus_capture.splat.optimize import LearningRates
 from manus_capture.splat.takes import (
     HandFrames,
     crop_views,
+    empty_scene,
     hand_frames_from_dataset,
     hand_masks_from_dataset,
     hand_views_from_take,
@@ -122,6 +124,7 @@ class ModelInputs:
     train_masks: np.ndarray       # (P,C,H,W) hand masks of train_rows, rig order
     test_masks: np.ndarray        # (Q,C,H,W) of test_rows
     object_masks: np.ndarray      # (C,H,W), rig order
+    behind: dict[str, np.ndarray] | None = None   # the empty cube per camera (empty_scene)
     object_iterations: int = 400
     hand_iterations: int = 400
     scale: float = 1.0
@@ -153,7 +156,7 @@ class ModelInputs:
             seg = segment_take(object_take, rig, background_take, object_take)
             object_masks = seg.object[0][seg.in_order(rig.ids)]
         return cls(rig, Path(hand_take), Path(object_take), frames, train, test, train_masks, test_masks,
-                   object_masks, **settings)
+                   object_masks, empty_scene(background_take, rig.ids), **settings)
 
     def train_hand_model(self, cams: np.ndarray) -> HandGaussians:
         """MANUS-Hand trained on the cameras `cams` (indices into rig): surfels on the template and
@@ -161,7 +164,8 @@ class ModelInputs:
         cams = np.asarray(cams)
         sub = self.rig.subset([self.rig.ids[i] for i in cams])
         poses, hand_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.train_rows,
-                                                 masks=self.train_masks[:, cams], scale=self.scale)
+                                                 masks=self.train_masks[:, cams], scale=self.scale,
+                                                 behind=self.behind)
         hand = surface_hand(self.hand_frames.bone_lengths)
         train_hand(hand, poses, [crop_views(v) for v in hand_views],
                    surface_hand_config(self.hand_iterations, seed=self.seed))
@@ -175,7 +179,8 @@ class ModelInputs:
         torch.manual_seed(self.seed)
         # CPU settings (ObjectConfig.surfels, HandConfig.surfels): hundreds of steps on windows
         # around the masks, scored on the whole views
-        views = object_views_from_take(self.object_take, sub, masks=self.object_masks[cams], scale=self.scale)
+        views = object_views_from_take(self.object_take, sub, masks=self.object_masks[cams], scale=self.scale,
+                                       behind=self.behind)
         # with `evaluate`, every HELD_OUT_VIEWS-th view of the object is kept out of its training
         # (with fewer views, the last; with one, none, and the object's scores are NaN)
         held = np.arange(len(views)) % HELD_OUT_VIEWS == min(HELD_OUT_VIEWS // 2, len(views) - 1)
@@ -187,13 +192,22 @@ class ModelInputs:
         if evaluate:
             test_poses, test_views = hand_views_from_take(self.hand_take, sub, self.hand_frames, self.test_rows,
                                                           masks=self.test_masks[:, cams],
-                                                          scale=self.scale)
+                                                          scale=self.scale, behind=self.behind)
+            # scored over the empty cube, as the cameras see the subjects, and over black as before
+            # (silhouette pixels then keep the wall's share against the model's black)
+            plain = [dataclasses.replace(v, backgrounds=None) for v in test_views]
             hand_scores = evaluate_hand(hand, test_poses, test_views, eps2d=SURFACE_EPS2D)
-            object_scores = (evaluate_object(obj, views.subset(np.flatnonzero(held)), eps2d=SURFACE_EPS2D)
-                             if held.any() else {"psnr": np.nan, "psnr_mask": np.nan, "ssim": np.nan})
+            hand_black = evaluate_hand(hand, test_poses, plain, eps2d=SURFACE_EPS2D)
+            unscored = {"psnr": np.nan, "psnr_mask": np.nan, "ssim": np.nan}
+            held_views = views.subset(np.flatnonzero(held))
+            object_scores = evaluate_object(obj, held_views, eps2d=SURFACE_EPS2D) if held.any() else unscored
+            object_black = (evaluate_object(obj, dataclasses.replace(held_views, backgrounds=None), eps2d=SURFACE_EPS2D)
+                            if held.any() else unscored)
             metrics = {"hand_psnr_heldout_poses_db": hand_scores["psnr"],
                        "hand_psnr_mask_db": hand_scores["psnr_mask"], "hand_ssim": hand_scores["ssim"],
+                       "hand_psnr_mask_black_db": hand_black["psnr_mask"],
                        "object_psnr_heldout_views_db": object_scores["psnr"],
                        "object_psnr_mask_db": object_scores["psnr_mask"], "object_ssim": object_scores["ssim"],
+                       "object_psnr_mask_black_db": object_black["psnr_mask"],
                        "hand_gaussians": len(hand), "object_gaussians": len(obj)}
         return TrainedModels(hand, obj, metrics)

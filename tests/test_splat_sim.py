@@ -244,6 +244,9 @@ def test_reconstruct_object_command_on_a_take(tmp_path):
     wrong = runner.invoke(cli, ["reconstruct", "object", "--cameras", str(tmp_path / "cameras.json"), "--images",
                                 str(tmp_path), "--masks", "truth", "-o", str(tmp_path / "x.safetensors")])
     assert wrong.exit_code == 2 and "--masks truth needs --take" in wrong.output
+    wrong = runner.invoke(cli, ["reconstruct", "object", "--cameras", str(tmp_path / "cameras.json"), "--images",
+                                str(tmp_path), "--empty", str(take), "-o", str(tmp_path / "x.safetensors")])
+    assert wrong.exit_code == 2 and "--empty needs --take" in wrong.output
 
 
 def test_reconstruct_hand_command_from_annotate(small_hand_take, tmp_path):

@@ -30,6 +30,7 @@ from manus_capture.splat.losses import load_lpips
 from manus_capture.splat.rasterize import EPS2D
 from manus_capture.splat.takes import (
     crop_views,
+    empty_scene,
     hand_frames_from_dataset,
     hand_frames_from_truth,
     hand_masks_from_dataset,
@@ -43,7 +44,7 @@ from manus_capture.splat.takes import (
 from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, render, world_to_camera
 from manus_capture.torch_threads import TRAIN_THREADS
 from manus_capture.train_tasks import HandTraining, ObjectTraining, train_in_task
-from manus_core.cameras import scale_intrinsics
+from manus_core.cameras import CameraRig, scale_intrinsics
 from manus_core.errors import ReconstructInputError
 from manus_core.fileio import write_atomic
 from manus_core.take import Take
@@ -139,6 +140,17 @@ def command() -> None:
     """Train Gaussian models of the object and of the hand (and render them)."""
 
 
+def _empty_scene(empty: Path | None, rig: CameraRig) -> dict[str, np.ndarray] | None:
+    """What each camera of rig sees of the empty take (None without one); a camera it lacks is named."""
+    if empty is None:
+        return None
+    scene = empty_scene(empty, rig.ids)
+    missing = [c for c in rig.ids if c not in scene]
+    if missing:
+        raise ReconstructInputError(f"--empty {empty}: no frames of cameras {', '.join(missing)}")
+    return scene
+
+
 def _common_options(f):
     """Options shared by `object` and `hand`."""
     options = [
@@ -151,6 +163,9 @@ def _common_options(f):
                      help="Train on windows this many pixels around the masks (views with masks)."),
         click.option("--sh-degree", type=click.IntRange(0, 3), default=1, show_default=True),
         click.option("--background", default="0,0,0", show_default=True, help="Background colour r,g,b in [0,1]."),
+        click.option("--empty", "empty", type=click.Path(path_type=Path, exists=True, file_okay=False), default=None,
+                     help="A take of the empty cube (segment's --background): renders are put over what each "
+                          "camera sees of it, as the cameras see the subject, instead of over --background."),
         click.option("--lpips-weights", type=click.Path(path_type=Path, exists=True), default=None,
                      help="LPIPS state dict (see docs/splat.md); LPIPS is off without it."),
         click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default="alex", show_default=True),
@@ -188,11 +203,13 @@ def _common_options(f):
 def object_command(take: Path | None, frame: int | None, images_dir: Path | None, masks_arg: str | None,
                    test_cameras: str, iterations: int, points: int, surfels: bool, cameras_path: Path,
                    only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
-                   lpips_weights: Path | None, lpips_net: str, seed: int, threads: int, output: Path, force: bool,
-                   workers: int, scheduler: str | None) -> None:
+                   empty: Path | None, lpips_weights: Path | None, lpips_net: str, seed: int, threads: int,
+                   output: Path, force: bool, workers: int, scheduler: str | None) -> None:
     """Fit static Gaussians to the calibrated views of an object; print held-out PSNR/SSIM."""
     if (take is None) == (images_dir is None):
         raise click.UsageError("give exactly one of --take and --images")
+    if empty is not None and take is None:
+        raise click.UsageError("--empty needs --take (the empty take's frames stand behind the take's)")
     if masks_arg == "truth" and take is None:
         raise click.UsageError("--masks truth needs --take (a simulated take with ground_truth.h5)")
     _check_output(output, force)
@@ -205,7 +222,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
     if masks_arg is not None and masks_arg != "truth":
         masks = np.stack([_read_image(Path(masks_arg), c, cv2.IMREAD_GRAYSCALE) > 0 for c in rig.ids])
     if take is not None:
-        views = object_views_from_take(take, rig, frame, masks_arg if masks_arg == "truth" else masks, scale)
+        views = object_views_from_take(take, rig, frame, masks_arg if masks_arg == "truth" else masks, scale,
+                                       behind=_empty_scene(empty, rig))
     else:
         images = [_read_image(images_dir, cam, cv2.IMREAD_COLOR) for cam in rig.ids]
         imgs, msk, Ks = undistort(rig, images, masks, scale)
@@ -228,8 +246,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
     save_checkpoint(output, gaussians, kind="object",
                     metadata={"calibration": str(cameras_path), "source": str(take or images_dir),
                               "frame": str(frame), "scale": str(scale), "background": background,
-                              "cameras": ",".join(views.ids), "test_cameras": ",".join(held_out),
-                              "eps2d": str(cfg.eps2d)})
+                              "empty": str(empty or ""), "cameras": ",".join(views.ids),
+                              "test_cameras": ",".join(held_out), "eps2d": str(cfg.eps2d)})
     summary = f"{output}: {len(gaussians)} Gaussians from {len(train_idx)} views, {elapsed:.0f} s"
     if test_idx:
         summary += "; " + _scores_text(evaluate(gaussians, views.subset(test_idx), bg,
@@ -264,8 +282,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
 def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None, truth: bool, frames_arg: str,
                  poses: int, test_frames: str, masks_arg: str | None, iterations: int, init: str, per_bone: int,
                  cameras_path: Path, only_cameras: str, scale: float, crop_margin: int, sh_degree: int,
-                 background: str, lpips_weights: Path | None, lpips_net: str, seed: int, threads: int, output: Path,
-                 force: bool, workers: int, scheduler: str | None) -> None:
+                 background: str, empty: Path | None, lpips_weights: Path | None, lpips_net: str, seed: int,
+                 threads: int, output: Path, force: bool, workers: int, scheduler: str | None) -> None:
     """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
     if truth == (dataset_path is not None):
         raise click.UsageError("give exactly one of --dataset and --truth")
@@ -294,7 +312,7 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
         masks = hand_masks_from_dataset(dataset_path, hand.key, frames, rig.ids)
     else:
         masks = "truth"
-    angles, views = hand_views_from_take(take, rig, hand, frames, masks, scale)
+    angles, views = hand_views_from_take(take, rig, hand, frames, masks, scale, behind=_empty_scene(empty, rig))
 
     settings = dict(sh_degree=sh_degree, background=bg, seed=seed,
                     lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net)
@@ -312,7 +330,8 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     save_checkpoint(output, model.gaussians, kind="hand", extra=model.extra_tensors(),
                     metadata={"calibration": str(cameras_path), "source": str(take), "angles": hand.source,
                               "frames": ",".join(map(str, frames)), "test_frames": ",".join(map(str, test)),
-                              "scale": str(scale), "background": background, "eps2d": str(cfg.eps2d)})
+                              "scale": str(scale), "background": background, "empty": str(empty or ""),
+                              "eps2d": str(cfg.eps2d)})
     n_views = sum(len(views[i]) for i in train_rows)
     n_poses = sum(1 for i in train_rows if len(views[i]))
     summary = f"{output}: {len(model)} Gaussians from {n_poses} poses ({n_views} views), {elapsed:.0f} s"

@@ -323,7 +323,8 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
         rgb, alpha, info = model.render(poses[p], view.viewmats[v:v + 1], view.Ks[v:v + 1], view.width,
                                         view.height, bg, sh_degree=degree, return_meta=True,
                                         chunk_elements=cfg.chunk_elements, eps2d=cfg.eps2d)
-        loss, parts = image_loss(rgb, targets[p][v:v + 1], model.gaussians.scales, cfg.weights, lpips, alpha,
+        loss, parts = image_loss(view.composite(rgb, alpha, bg, slice(v, v + 1)), targets[p][v:v + 1],
+                                 model.gaussians.scales, cfg.weights, lpips, alpha,
                                  None if view.masks is None else view.masks[v:v + 1])
         history.append(optimize_step(model.gaussians.params, optimizers, densify, loss, parts, info, step, means_lr))
         # small splats cannot stand for the hand from inside it: to cover the silhouettes their
@@ -343,8 +344,8 @@ def evaluate_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views],
     for p, view in enumerate(views):
         if not len(view):
             continue
-        rgb, _ = model.render(poses[p], view.viewmats, view.Ks, view.width, view.height, bg, eps2d=eps2d)
-        add_scores(scores, rgb, view, bg)
+        rgb, alpha = model.render(poses[p], view.viewmats, view.Ks, view.width, view.height, bg, eps2d=eps2d)
+        add_scores(scores, view.composite(rgb, alpha, bg), view, bg)
     return {k: sum(v) / len(v) for k, v in scores.items() if v}
 
 

@@ -22,6 +22,7 @@ the mask (the hand is occluded there, and a mask that cuts it would teach the mo
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,6 +33,8 @@ import h5py
 import numpy as np
 import torch
 
+from dataset_tools.segmentation.background import BackgroundModel
+from dataset_tools.segmentation.groups import sample_frames
 from manus_core.cameras import CameraRig, scale_intrinsics
 from manus_core.dataset import Dataset, read_dataset
 from manus_core.errors import TakeInputError
@@ -171,16 +174,44 @@ def crop_views(views: Views, margin: int = 8) -> Views:
     without masks are returned as they are."""
     if views.masks is None or not bool(views.masks.any()):
         return views
-    images, masks, Ks = crop_to_masks(views.images.cpu().numpy(), views.masks.cpu().numpy(),
+    # the backgrounds ride along as three more channels, cut with the same windows
+    pixels = views.images if views.backgrounds is None else torch.cat([views.images, views.backgrounds], -1)
+    pixels, masks, Ks = crop_to_masks(pixels.cpu().numpy(), views.masks.cpu().numpy(),
                                       views.Ks.cpu().double().numpy(), margin)
     device = views.images.device
-    return Views(torch.as_tensor(images, device=device), torch.as_tensor(Ks, dtype=torch.float32, device=device),
-                 views.viewmats, torch.as_tensor(masks, device=device), views.ids)
+    pixels = torch.as_tensor(pixels, device=device)
+    return Views(pixels[..., :3], torch.as_tensor(Ks, dtype=torch.float32, device=device), views.viewmats,
+                 torch.as_tensor(masks, device=device), views.ids,
+                 None if views.backgrounds is None else pixels[..., 3:])
 
 
-def _views(rig: CameraRig, images, masks, scale: float) -> Views:
+def empty_scene(take_path: str | os.PathLike, cameras: Sequence[str]) -> dict[str, np.ndarray]:
+    """What each camera sees of the empty cube: the median (H,W,3) BGR float32 of a few frames
+    of an empty take (segment's background model), per camera id; cameras it lacks are left out."""
+    take = Take(take_path)
+    return {cam: BackgroundModel.fit(sample_frames(take, cam)).median for cam in cameras
+            if cam in take.cameras and take.frame_count(cam)}
+
+
+def _exposure(images: np.ndarray, backgrounds: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
+    """Each view's brightness (V,) relative to its background: the median ratio away from the
+    (grown) mask. The cameras' exposure and the lights drift between takes."""
+    ratio = images.mean(-1) / np.maximum(backgrounds.mean(-1), 1 / 64)
+    if masks is not None:
+        grown = np.stack([cv2.dilate(m.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0 for m in masks])
+        ratio = np.where(grown, np.nan, ratio)
+    return np.nan_to_num(np.nanmedian(ratio.reshape(len(ratio), -1), axis=1), nan=1.0).astype(np.float32)
+
+
+def _views(rig: CameraRig, images, masks, scale: float, behind: dict[str, np.ndarray] | None = None) -> Views:
+    """Views of rig's cameras; with `behind` (empty_scene), their backgrounds too, brought to each
+    view's exposure. A camera missing from `behind` has none: then no view has any."""
     imgs, msk, Ks = undistort(rig, images, masks, scale)
-    return Views.from_rig(imgs, Ks, rig.R, rig.t, msk, rig.ids)
+    backgrounds = None
+    if behind is not None and all(c in behind for c in rig.ids):
+        backgrounds, _, _ = undistort(rig, [behind[c] for c in rig.ids], None, scale)
+        backgrounds = torch.as_tensor(backgrounds * _exposure(imgs, backgrounds, msk)[:, None, None, None])
+    return dataclasses.replace(Views.from_rig(imgs, Ks, rig.R, rig.t, msk, rig.ids), backgrounds=backgrounds)
 
 
 def _open(take_path: str | os.PathLike, rig: CameraRig) -> Take:
@@ -193,13 +224,14 @@ def _open(take_path: str | os.PathLike, rig: CameraRig) -> Take:
 
 def object_views_from_take(take_path: str | os.PathLike, rig: CameraRig, frame: int | None = None,
                            masks: np.ndarray | str | None = "truth", scale: float = 1.0,
-                           min_mask_fraction: float = 0.25) -> Views:
+                           min_mask_fraction: float = 0.25, behind: dict[str, np.ndarray] | None = None) -> Views:
     """Views of a static object: one frame of every camera of `rig` (any subset of the take's).
 
     frame: each camera's frame index; None takes the first tick with labels when masks="truth",
     else frame 0. masks: "truth" (ground_truth.h5 labels), an array (C,H,W) bool in rig order at
     the cameras' resolution, or None (whole images, no crop). Views where the object is hidden
     (mask below min_mask_fraction of the largest) are left out; Views.ids names the kept cameras.
+    behind: the empty scene (empty_scene) for the views' backgrounds.
     """
     take = _open(take_path, rig)
     if isinstance(masks, str) and masks != "truth":
@@ -225,7 +257,7 @@ def object_views_from_take(take_path: str | os.PathLike, rig: CameraRig, frame: 
         area = masks.reshape(len(rig), -1).sum(1)
         keep = np.flatnonzero(area >= min_mask_fraction * max(area.max(), 1))
     sub = rig.subset([rig.ids[i] for i in keep])
-    return _views(sub, [images[i] for i in keep], None if masks is None else masks[keep], scale)
+    return _views(sub, [images[i] for i in keep], None if masks is None else masks[keep], scale, behind)
 
 
 @dataclass
@@ -359,14 +391,16 @@ def still_frames(angles: np.ndarray, tolerance: float = 1e-3, count: int | None 
 
 
 def hand_views_from_take(take_path: str | os.PathLike, rig: CameraRig, hand: HandFrames, frames: Sequence[int],
-                         masks: np.ndarray | str = "truth", scale: float = 1.0) -> tuple[torch.Tensor, list[Views]]:
+                         masks: np.ndarray | str = "truth", scale: float = 1.0,
+                         behind: dict[str, np.ndarray] | None = None) -> tuple[torch.Tensor, list[Views]]:
     """(poses (P,26), views per pose) for rows `frames` of `hand` (any camera subset of the take).
 
     masks: "truth" (ground_truth.h5 labels 1 and 3) or an array (P,C,H,W) bool in rig order; the
     hand needs masks, as its model holds nothing but the hand. A pose's views are the cameras
     that have its frame and see the hand unoccluded (see the module doc); Views.ids names them.
     views[i] belongs to frames[i] always: a pose no camera sees well gets an empty Views, which
-    train_hand and evaluate_hand pass over.
+    train_hand and evaluate_hand pass over. behind: the empty scene (empty_scene) for the views'
+    backgrounds.
     """
     take = _open(take_path, rig)
     frames = [int(f) for f in frames]
@@ -400,7 +434,7 @@ def hand_views_from_take(take_path: str | os.PathLike, rig: CameraRig, hand: Han
         use = [c for c in range(len(rig)) if index[p, c] >= 0 and _hand_visible(masks[p, c], uv[c, p])]
         if use:
             sub = rig.subset([rig.ids[c] for c in use])
-            views.append(_views(sub, [per_cam[c][int(index[p, c])] for c in use], masks[p, use], scale))
+            views.append(_views(sub, [per_cam[c][int(index[p, c])] for c in use], masks[p, use], scale, behind))
         else:  # kept, empty, so that views[i] stays the view set of frames[i]
             views.append(Views(torch.zeros(0, 1, 1, 3), torch.zeros(0, 3, 3), torch.zeros(0, 4, 4),
                                torch.zeros(0, 1, 1, dtype=torch.bool), ()))

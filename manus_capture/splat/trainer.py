@@ -41,16 +41,21 @@ def world_to_camera(R, t) -> torch.Tensor:
     return viewmats
 
 
+NEAR_MASK_PX = 2
+
+
 @dataclass
 class Views:
     """Calibrated views: images (V,H,W,3) in [0,1], Ks (V,3,3), viewmats (V,4,4), masks (V,H,W) or
-    None, and optionally the camera ids (V,) they came from."""
+    None, optionally the camera ids (V,) they came from, and optionally `backgrounds` (V,H,W,3):
+    what each camera sees behind the subject (the empty scene), for renders to be put over."""
 
     images: torch.Tensor
     Ks: torch.Tensor
     viewmats: torch.Tensor
     masks: torch.Tensor | None = None
     ids: tuple[str, ...] | None = None
+    backgrounds: torch.Tensor | None = None
 
     @classmethod
     def from_rig(cls, images: torch.Tensor, K: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
@@ -67,7 +72,8 @@ class Views:
 
     def to(self, device: str | torch.device) -> "Views":
         return Views(self.images.to(device), self.Ks.to(device), self.viewmats.to(device),
-                     None if self.masks is None else self.masks.to(device), self.ids)
+                     None if self.masks is None else self.masks.to(device), self.ids,
+                     None if self.backgrounds is None else self.backgrounds.to(device))
 
     @property
     def width(self) -> int:
@@ -87,13 +93,31 @@ class Views:
         index = torch.as_tensor(index, dtype=torch.long)
         return Views(self.images[index], self.Ks[index], self.viewmats[index],
                      None if self.masks is None else self.masks[index],
-                     None if self.ids is None else tuple(self.ids[i] for i in index.tolist()))
+                     None if self.ids is None else tuple(self.ids[i] for i in index.tolist()),
+                     None if self.backgrounds is None else self.backgrounds[index])
 
     def targets(self, background: torch.Tensor) -> torch.Tensor:
-        """Images with everything outside the masks set to the background colour."""
+        """Images with everything outside the masks set to the background colour; with
+        backgrounds, to those, beyond NEAR_MASK_PX of a mask."""
         if self.masks is None:
             return self.images
-        return torch.where(self.masks[..., None], self.images, background.to(self.images.dtype))
+        if self.backgrounds is None:
+            return torch.where(self.masks[..., None], self.images, background.to(self.images.dtype))
+        # a pixel just outside a mask is still partly the subject (under half of it): its image
+        # is its target, not the empty scene
+        size = 2 * NEAR_MASK_PX + 1
+        near = torch.nn.functional.max_pool2d(self.masks[:, None].float(), size, 1, NEAR_MASK_PX)[:, 0] > 0
+        return torch.where(near[..., None], self.images, self.backgrounds)
+
+    def composite(self, rendered: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor,
+                  index: slice = slice(None)) -> torch.Tensor:
+        """Renders (V,H,W,3) of views `index`, made over the colour `background` with their alpha
+        (V,H,W,1), put over those views' backgrounds where they have them. A pixel on a subject's
+        silhouette is partly the subject and partly the scene behind it: over a plain colour, not
+        even an exact model of the subject matches it."""
+        if self.backgrounds is None:
+            return rendered
+        return rendered + (1 - alpha) * (self.backgrounds[index] - background)
 
 
 # At the capture takes' resolutions a pixel is a few millimetres on the subject, and 3DGS's blur
@@ -323,9 +347,9 @@ def evaluate(gaussians: Gaussians, views: Views, background=(0.0, 0.0, 0.0),
     bg = torch.as_tensor(background, dtype=views.images.dtype, device=views.images.device)
     scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_mask": [], "lpips": []}
     for i in range(len(views)):
-        rgb, _ = render(gaussians, views.viewmats[i:i + 1], views.Ks[i:i + 1], views.width, views.height, bg,
-                        eps2d=eps2d)
-        add_scores(scores, rgb, views.subset([i]), bg, lpips)
+        rgb, alpha = render(gaussians, views.viewmats[i:i + 1], views.Ks[i:i + 1], views.width, views.height, bg,
+                            eps2d=eps2d)
+        add_scores(scores, views.composite(rgb, alpha, bg, slice(i, i + 1)), views.subset([i]), bg, lpips)
     return {k: sum(v) / len(v) for k, v in scores.items() if v}
 
 
@@ -381,7 +405,8 @@ def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussia
         rgb, alpha, info = render(gaussians, views.viewmats[i:i + 1], views.Ks[i:i + 1], views.width, views.height,
                                   bg, sh_degree=degree, return_meta=True, chunk_elements=cfg.chunk_elements,
                                   eps2d=cfg.eps2d)
-        loss, parts = image_loss(rgb, targets[i:i + 1], gaussians.scales, cfg.weights, lpips, alpha,
+        loss, parts = image_loss(views.composite(rgb, alpha, bg, slice(i, i + 1)), targets[i:i + 1],
+                                 gaussians.scales, cfg.weights, lpips, alpha,
                                  None if views.masks is None else views.masks[i:i + 1])
         record = optimize_step(gaussians.params, optimizers, densify, loss, parts, info, step, means_lr)
         gaussians.cap_scales(cfg.max_scale, cfg.thin)

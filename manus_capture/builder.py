@@ -198,11 +198,12 @@ class ModelInputs:
             plain = [dataclasses.replace(v, backgrounds=None) for v in test_views]
             hand_scores = evaluate_hand(hand, test_poses, test_views, eps2d=SURFACE_EPS2D)
             hand_black = evaluate_hand(hand, test_poses, plain, eps2d=SURFACE_EPS2D)
-            unscored = {"psnr": np.nan, "psnr_mask": np.nan, "ssim": np.nan}
-            held_views = views.subset(np.flatnonzero(held))
-            object_scores = evaluate_object(obj, held_views, eps2d=SURFACE_EPS2D) if held.any() else unscored
-            object_black = (evaluate_object(obj, dataclasses.replace(held_views, backgrounds=None), eps2d=SURFACE_EPS2D)
-                            if held.any() else unscored)
+            object_scores = object_black = {"psnr": np.nan, "psnr_mask": np.nan, "ssim": np.nan}
+            if held.any():
+                held_views = views.subset(np.flatnonzero(held))
+                object_scores = evaluate_object(obj, held_views, eps2d=SURFACE_EPS2D)
+                object_black = evaluate_object(obj, dataclasses.replace(held_views, backgrounds=None),
+                                               eps2d=SURFACE_EPS2D)
             metrics = {"hand_psnr_heldout_poses_db": hand_scores["psnr"],
                        "hand_psnr_mask_db": hand_scores["psnr_mask"], "hand_ssim": hand_scores["ssim"],
                        "hand_psnr_mask_black_db": hand_black["psnr_mask"],

@@ -20,6 +20,7 @@ from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, p
 from manus_capture.splat.takes import (
     crop_to_masks,
     crop_views,
+    empty_scene,
     frames_with_seq,
     hand_frames_from_truth,
     hand_views_from_take,
@@ -216,6 +217,22 @@ def test_a_pose_no_camera_sees_keeps_its_place(small_hand_take):
     assert poses.shape == (3, 26) and [len(v) > 0 for v in views] == [True, False, True]
     assert np.allclose(poses.numpy(), hand.angles[[0, 1, 2]], atol=1e-6)
     assert all(set(v.ids) <= set(rig.ids) for v in views)
+
+
+def test_the_empty_cube_stands_behind_the_object(tmp_path):
+    """empty_scene and behind=: what each camera saw of the empty cube, undistorted and cut with
+    the object's views, is what the object take's images show around the object: within the
+    sensor's noise and JPEG's, where a background one pixel off is not."""
+    empty = record(tmp_path / "S", "calibration", 6, (160, 90), 0.2, [], supersample=1)
+    take = record(tmp_path / "S", "object", 6, (160, 90), 0.1, [0], supersample=1)
+    rig = truth_cameras(take)
+    views = crop_views(object_views_from_take(take, rig, behind=empty_scene(empty, rig.ids)), margin=8)
+    assert views.backgrounds is not None and views.backgrounds.shape == views.images.shape
+    far = torch.nn.functional.max_pool2d(views.masks[:, None].float(), 9, 1, 4)[:, 0] == 0
+    error = (views.images - views.backgrounds).abs().mean(-1)
+    shifted = (views.images[:, :, 1:] - views.backgrounds[:, :, :-1]).abs().mean(-1)
+    # measured 0.0057 (on a scale of 0 to 1) and 0.080 one pixel off
+    assert float(error[far].mean()) < 0.015 and float(shifted[far[:, :, 1:]].mean()) > 5 * float(error[far].mean())
 
 
 def test_reconstruct_object_command_on_a_take(tmp_path):

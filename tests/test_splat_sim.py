@@ -10,6 +10,7 @@ angles are those of its tick, and over the hand routine of 2.1 s each frame show
 from __future__ import annotations
 
 import dataclasses
+import re
 import warnings
 
 import numpy as np
@@ -30,6 +31,7 @@ from manus_capture.splat.takes import (
     truth_labels,
 )
 from manus_capture.splat.trainer import ObjectConfig, evaluate, train_object
+from manus_core.errors import TakeInputError
 from manus_core.skeleton import BONES
 
 FPS = 10.0
@@ -233,6 +235,9 @@ def test_the_empty_cube_stands_behind_the_object(tmp_path):
     shifted = (views.images[:, :, 1:] - views.backgrounds[:, :, :-1]).abs().mean(-1)
     # measured 0.0057 (on a scale of 0 to 1) and 0.080 one pixel off
     assert float(error[far].mean()) < 0.015 and float(shifted[far[:, :, 1:]].mean()) > 5 * float(error[far].mean())
+    # an empty take without one of the cameras is refused, naming it and the take
+    with pytest.raises(TakeInputError, match=re.escape(f"{empty}: the empty take has no frames of cameras nope")):
+        empty_scene(empty, [*rig.ids, "nope"])
 
 
 def test_reconstruct_object_command_on_a_take(tmp_path):

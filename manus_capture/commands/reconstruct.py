@@ -44,7 +44,7 @@ from manus_capture.splat.takes import (
 from manus_capture.splat.trainer import ObjectConfig, Views, evaluate, render, world_to_camera
 from manus_capture.torch_threads import TRAIN_THREADS
 from manus_capture.train_tasks import HandTraining, ObjectTraining, train_in_task
-from manus_core.cameras import CameraRig, scale_intrinsics
+from manus_core.cameras import scale_intrinsics
 from manus_core.errors import ReconstructInputError
 from manus_core.fileio import write_atomic
 from manus_core.take import Take
@@ -140,15 +140,9 @@ def command() -> None:
     """Train Gaussian models of the object and of the hand (and render them)."""
 
 
-def _empty_scene(empty: Path | None, rig: CameraRig) -> dict[str, np.ndarray] | None:
-    """What each camera of rig sees of the empty take (None without one); a camera it lacks is named."""
-    if empty is None:
-        return None
-    scene = empty_scene(empty, rig.ids)
-    missing = [c for c in rig.ids if c not in scene]
-    if missing:
-        raise ReconstructInputError(f"--empty {empty}: no frames of cameras {', '.join(missing)}")
-    return scene
+def _empty_scene(empty: Path | None, cameras: list[str]) -> dict[str, np.ndarray] | None:
+    """--empty's scene per camera, or None without it."""
+    return None if empty is None else empty_scene(empty, cameras)
 
 
 def _common_options(f):
@@ -223,7 +217,7 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
         masks = np.stack([_read_image(Path(masks_arg), c, cv2.IMREAD_GRAYSCALE) > 0 for c in rig.ids])
     if take is not None:
         views = object_views_from_take(take, rig, frame, masks_arg if masks_arg == "truth" else masks, scale,
-                                       behind=_empty_scene(empty, rig))
+                                       behind=_empty_scene(empty, rig.ids))
     else:
         images = [_read_image(images_dir, cam, cv2.IMREAD_COLOR) for cam in rig.ids]
         imgs, msk, Ks = undistort(rig, images, masks, scale)
@@ -312,7 +306,7 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
         masks = hand_masks_from_dataset(dataset_path, hand.key, frames, rig.ids)
     else:
         masks = "truth"
-    angles, views = hand_views_from_take(take, rig, hand, frames, masks, scale, behind=_empty_scene(empty, rig))
+    angles, views = hand_views_from_take(take, rig, hand, frames, masks, scale, behind=_empty_scene(empty, rig.ids))
 
     settings = dict(sh_degree=sh_degree, background=bg, seed=seed,
                     lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net)

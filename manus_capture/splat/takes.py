@@ -187,10 +187,13 @@ def crop_views(views: Views, margin: int = 8) -> Views:
 
 def empty_scene(take_path: str | os.PathLike, cameras: Sequence[str]) -> dict[str, np.ndarray]:
     """What each camera sees of the empty cube: the median (H,W,3) BGR float32 of a few frames
-    of an empty take (segment's background model), per camera id; cameras it lacks are left out."""
+    of an empty take (segment's background model), per camera id. A camera it lacks is an error:
+    models drawn over the empty cube in some views and over nothing in others score nothing."""
     take = Take(take_path)
-    return {cam: BackgroundModel.fit(sample_frames(take, cam)).median for cam in cameras
-            if cam in take.cameras and take.frame_count(cam)}
+    missing = [cam for cam in cameras if cam not in take.cameras or not take.frame_count(cam)]
+    if missing:
+        raise TakeInputError(f"{take.path}: the empty take has no frames of cameras {', '.join(missing)}")
+    return {cam: BackgroundModel.fit(sample_frames(take, cam)).median for cam in cameras}
 
 
 def _exposure(images: np.ndarray, backgrounds: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
@@ -205,10 +208,10 @@ def _exposure(images: np.ndarray, backgrounds: np.ndarray, masks: np.ndarray | N
 
 def _views(rig: CameraRig, images, masks, scale: float, behind: dict[str, np.ndarray] | None = None) -> Views:
     """Views of rig's cameras; with `behind` (empty_scene), their backgrounds too, brought to each
-    view's exposure. A camera missing from `behind` has none: then no view has any."""
+    view's exposure."""
     imgs, msk, Ks = undistort(rig, images, masks, scale)
     backgrounds = None
-    if behind is not None and all(c in behind for c in rig.ids):
+    if behind is not None:
         backgrounds, _, _ = undistort(rig, [behind[c] for c in rig.ids], None, scale)
         backgrounds = torch.as_tensor(backgrounds * _exposure(imgs, backgrounds, msk)[:, None, None, None])
     return dataclasses.replace(Views.from_rig(imgs, Ks, rig.R, rig.t, msk, rig.ids), backgrounds=backgrounds)

@@ -3,10 +3,13 @@
     .venv/bin/python benchmarks/bench_detect.py [--cameras 8] [--seconds 0.5] [--keep DIR]
 
 The simulated cube records a grasp take at 1280x720 and 120 FPS (`--cameras` spread over the cube,
-JPEG, each camera on its own clock). `detect_take` then runs on it four times, on one core with
+JPEG, each camera on its own clock). `detect_take` then runs on it five times, on one core with
 one thread: `track=False`, the palm detector and two passes of the keypoint model in every frame;
-`track=True` (the default), the palm detector on the first frame of each 16-frame chunk and where the
-hand is lost, one pass on the crop around the previous frame's keypoints elsewhere; tracking with
+`track=True` (the default; keypoints2d.track_frames), the palm detector afresh every 128 frames, where
+the hand is lost and, while none is found, on one frame in 4 (the frames between tracked backwards
+from where it finds the hand), one pass on the crop around the previous frame's keypoints elsewhere;
+the tracker of earlier rounds beside it (afresh every 16 frames, the palm detector on every frame
+without a hand: `redetect_every=16, search_every=1`); tracking with
 MediaPipe's lite keypoint model (`--model mediapipe-hand-lite`); and tracking with the full model
 in int8 (`--model mediapipe-hand-int8`), calibrated by `models quantize` on another take (a second
 subject, s03: a larger hand, darker skin; 4 cameras, 0.25 s) in a model cache of the benchmark's
@@ -40,7 +43,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1]), str(Path(__file__).res
 from int8_cache import quantized_cache  # noqa: E402
 
 from dataset_tools.keypoints import hand_keypoint_detector  # noqa: E402
-from dataset_tools.keypoints.keypoints2d import detect_take  # noqa: E402
+from dataset_tools.keypoints.keypoints2d import REDETECT_EVERY, SEARCH_EVERY, detect_take  # noqa: E402
 from dataset_tools.simulated_detector import exposure_times, joints_at  # noqa: E402
 from manus_core.ground_truth import GroundTruth  # noqa: E402
 from manus_core.take import Take  # noqa: E402
@@ -122,12 +125,15 @@ def main() -> None:
         # twice: the first read also brings the videos into the page cache, where every run below finds them
         decode_s = [timed(lambda: [None for c in take.cameras for _ in take.iter_frames(c)])[1] for _ in range(2)][1]
         rates, errors = {}, {}
-        for name, model, track in (("palm detector every frame", "mediapipe-hand", False),
-                                   ("tracking (default)", "mediapipe-hand", True),
-                                   ("tracking, lite model", "mediapipe-hand-lite", True),
-                                   ("tracking, int8 model", "mediapipe-hand-int8", True)):
+        default = dict(redetect_every=REDETECT_EVERY, search_every=SEARCH_EVERY)
+        for name, model, track, tracker in (
+                ("palm detector every frame", "mediapipe-hand", False, default),
+                ("tracking as before", "mediapipe-hand", True, dict(redetect_every=16, search_every=1)),
+                ("tracking (default)", "mediapipe-hand", True, default),
+                ("tracking, lite model", "mediapipe-hand-lite", True, default),
+                ("tracking, int8 model", "mediapipe-hand-int8", True, default)):
             detector = hand_keypoint_detector(model, device="cpu", threads=1)
-            found, wall = timed(lambda: detect_take(take, detector, track=track))
+            found, wall = timed(lambda: detect_take(take, detector, track=track, **tracker))
             rates[name] = frames / wall
             in_view, errors[name] = frame_errors(found, truth)
         # the rows find the hand in different frames: medians over each row's own, and over the frames all found
@@ -141,8 +147,10 @@ def main() -> None:
             print(f"{name:<34} {rates[name]:>9.1f} {rates[name] * decode_s / frames:>10.0%} {share:>11.0%} "
                   f"{np.median(mine):>10.2f} {np.percentile(mine, 90):>8.2f} {np.median(e[common]):>18.2f}")
         ratio = rates["tracking (default)"] / rates["palm detector every frame"]
-        print(f"\ntracking / palm detector every frame: {ratio:.2f}x the frames per second ({frames} frames, "
-              f"{int(in_view.sum())} with the hand in view, {int(common.sum())} in which every row found it)")
+        before = rates["tracking (default)"] / rates["tracking as before"]
+        print(f"\ntracking / palm detector every frame: {ratio:.2f}x the frames per second, / tracking as before: "
+              f"{before:.2f}x ({frames} frames, {int(in_view.sum())} with the hand in view, {int(common.sum())} in "
+              f"which every row found it)")
     finally:
         if args.keep is None:
             shutil.rmtree(root, ignore_errors=True)

@@ -3,10 +3,11 @@
     .venv/bin/python benchmarks/bench_stages.py [--cameras 4] [--seconds 2 10] [--keep DIR]
 
 A hand take and an empty-cube take of `--cameras` cameras at 1280x720 and 120 FPS are rendered
-and recorded (4 frames a camera) and made `--seconds` long by benchmarks/fullsize_take.py's
-`extend` (the real format: MkvWriter with Cues, frames.csv at each camera's own clock). On each
-length, one process per stage, pinned to one CPU core with one thread for numpy, OpenCV and
-onnxruntime, runs through the command line as a user would:
+and recorded (the first 4 frames a camera of a hand routine 10 s long, whose first pose is held:
+at 120 FPS consecutive frames differ by the sensor's noise) and made `--seconds` long by
+benchmarks/fullsize_take.py's `extend` (the real format: MkvWriter with Cues, frames.csv at each
+camera's own clock). On each length, one process per stage, pinned to one CPU core with one
+thread for numpy, OpenCV and onnxruntime, runs through the command line as a user would:
 
     decode (ffmpeg)     ffmpeg -threads 1 -i CAM.mkv -f null -, camera after camera: the floor
     decode (Take)       Take.iter_frames over every camera: the toolkit's reader and its decoder
@@ -47,7 +48,7 @@ HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parent), str(HERE)]
 
 import numpy as np  # noqa: E402
-from fullsize_take import extend  # noqa: E402
+from fullsize_take import extend, record_first_frames  # noqa: E402
 from int8_cache import quantized_cache  # noqa: E402
 
 from dataset_tools.hand.bones import BoneLengths, save_subject  # noqa: E402
@@ -66,6 +67,8 @@ STEPS = 100            # reconstruct hand's training steps
 # triggered together, so that a frame group's repeated frames show one moment in every camera (free-running
 # cameras pair one camera's first rendered frame with another's third, and triangulation mixes moments)
 SYNC = "hardware-trigger"
+DISTINCT = 4           # rendered frames a camera
+HAND_PACE_S = 10.0     # the hand routine's length (docs/scale.md)
 TIME_GROWTH, MEMORY_GROWTH = 5.5 / 5, 1.2
 # A small process starts each stage, so that its peak memory (wait4's) is not the benchmark's: a
 # forked child's high-water mark starts at its parent's size and survives exec.
@@ -96,21 +99,23 @@ def make_takes(root: Path, cameras: int, lengths: list[float]) -> dict[float, Pa
     config = dataclasses.replace(config, sim=dataclasses.replace(config.sim, supersample=1))
     base = root / "base"
     t = time.perf_counter()
-    for name, kind in (("hand", "hand"), ("empty", "calibration")):
-        record_take(config, base, name, kind, 4 / config.fps)
+    # the hand's frames are the first of its routine at a person's pace, each pose held about a second
+    record_first_frames(config, base, "hand", "hand", DISTINCT, HAND_PACE_S)
+    record_take(config, base, "empty", "calibration", DISTINCT / config.fps)
     true_cameras(config).save(base / "cameras.json")
     # the subject's own bones: a few detected cameras are no basis for estimating them, nor the point
     # here; with another hand's, the fitted hand misses the masks and reconstruct finds no view
     bones = make_hand(config.sim.subject).skeleton.bone_lengths
     save_subject(base / "bones.json", config.sim.subject, BoneLengths(np.asarray(bones), np.full(20, np.nan),
                                                                       np.zeros(20, int)))
-    print(f"rendered and recorded 2 x {cameras} x 4 frames at 1280x720 in {time.perf_counter() - t:.0f} s", flush=True)
+    print(f"rendered and recorded 2 x {cameras} x {DISTINCT} frames at 1280x720 in {time.perf_counter() - t:.0f} s",
+          flush=True)
     sessions = {}
     for seconds in lengths:
         session = root / f"{seconds:g}s"
         shutil.copytree(base, session)
         t = time.perf_counter()
-        frames = extend(session / "hand", seconds)
+        frames = extend(session / "hand", seconds, DISTINCT)
         gb = sum(p.stat().st_size for p in (session / "hand" / "cams").glob("*.mkv")) / 1e9
         print(f"{session / 'hand'}: {frames} frames, {gb:.2f} GB, made in {time.perf_counter() - t:.0f} s", flush=True)
         sessions[seconds] = session

@@ -114,8 +114,8 @@ def test_detect_split_over_processes_gives_the_single_process_keypoints(installe
     runs = {}
     for name, extra in (("inline", []), ("pool", ["--workers", "2"])):
         out = tmp_path / f"{name}.h5"
-        res = CliRunner().invoke(cli, ["detect", str(take), "--device", "cpu", "--chunk", "1", "--frames-per-task", "1",
-                                       *extra, "-o", str(out)])
+        res = CliRunner().invoke(cli, ["detect", str(take), "--device", "cpu", "--chunk", "1", "--redetect-every", "1",
+                                       "--frames-per-task", "1", *extra, "-o", str(out)])
         assert res.exit_code == 0, res.output
         runs[name] = read_keypoints_h5(out)
     for cam in CAMERAS:

@@ -62,7 +62,7 @@ def client_pids(info: Path) -> dict[str, int]:
 
 def detect(take: Path, out: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "manus_capture.cli", "detect", str(take), "--device", "cpu",
-                             "--chunk", "1", "--frames-per-task", "1", *extra, "-o", str(out)],
+                             "--chunk", "1", "--redetect-every", "1", "--frames-per-task", "1", *extra, "-o", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 

@@ -13,9 +13,10 @@ camera's own frame index (its rows of frames.csv):
 
 Boxes file (`--boxes`): an .npz with one array per camera id, (F_cam,4) x0,y0,x1,y1 or (F_cam,5)
 with the hand-axis angle (radians, see boxes.py) in the last column; NaN rows are frames without
-a hand. Without it, MediaPipe's palm detector finds the hand: by default in the first frame of
-every chunk of frames and wherever the hand is lost, the other frames cropped around the previous
-frame's keypoints, as MediaPipe's tracker runs (`track=False`: the palm detector in every frame).
+a hand. Without it, MediaPipe's palm detector finds the hand and, by default, the hand is tracked
+(`track_frames`): each frame is cropped around the previous frame's keypoints, as MediaPipe's
+tracker runs, and the palm detector looks afresh every `redetect_every` frames and where the hand
+is lost (`track=False`: the palm detector in every frame).
 """
 
 from __future__ import annotations
@@ -39,6 +40,15 @@ from .detector import Detector
 from .models import JOINT_NAMES, NUM_JOINTS
 
 FORMAT = "manus-capture keypoints2d"
+# The tracker starts afresh (the palm detector) at every multiple of this many frames of a camera,
+# and a task holds whole periods: a take split over tasks gives the keypoints of one pass.
+REDETECT_EVERY = 128
+# While no hand is found the palm detector looks at one frame in this many, not at every frame: a
+# camera that does not see the hand costs little more than its decoding. Where it finds the hand,
+# the frames skipped since its last look are tracked backwards from there. (On bench_detect's
+# grasp, where the palm detector finds hands seen edge-on in single frames only, one in 4 found as
+# many frames as one in 1 did, one in 8 a tenth fewer.)
+SEARCH_EVERY = 4
 
 
 @dataclass
@@ -90,14 +100,15 @@ def load_boxes(path: str | Path, take: Take, cameras: Sequence[str]) -> dict[str
 
 def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | None = None,
                 cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
-                progress: Progress = silent, track: bool = True) -> dict[str, CameraKeypoints]:
-    """Keypoints of every frame of the given cameras (default: all), `chunk` frames per network call.
+                progress: Progress = silent, track: bool = True, redetect_every: int = REDETECT_EVERY,
+                search_every: int = SEARCH_EVERY) -> dict[str, CameraKeypoints]:
+    """Keypoints of every frame of the given cameras (default: all).
 
-    boxes: per camera (F,5) as load_boxes gives; None: the palm detector finds one hand, in every
-    frame, or with `track` in the first frame of each chunk and where the hand is lost, each other
-    frame cropped around the previous one's keypoints (one pass of the keypoint model a frame).
-    Reports progress("detect", frames done, frames of all the cameras). Frames past the end of a
-    video cut short (Take.missing_frames) stay undetected.
+    boxes: per camera (F,5) as load_boxes gives (`chunk` frames per network call); None: the palm
+    detector finds one hand, in every frame (likewise in chunks), or with `track` as track_frames
+    does (one pass of the keypoint model a frame where the hand is tracked). Reports
+    progress("detect", frames done, frames of all the cameras). Frames past the end of a video cut
+    short (Take.missing_frames) stay undetected.
     """
     cameras = list(cameras or take.cameras)
     total = sum(take.readable_frames(cam) for cam in cameras)
@@ -112,7 +123,8 @@ def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | N
     for cam in cameras:
         kp, used = _empty(take.frame_count(cam))
         _detect_frames(detector, take.iter_frames(cam, 0, take.readable_frames(cam)),
-                       None if boxes is None else boxes[cam], chunk, min_score, track, kp, used, batch_done)
+                       None if boxes is None else boxes[cam], chunk, min_score, track, kp, used, batch_done,
+                       redetect_every, search_every)
         result[cam] = _camera_keypoints(kp, used)
     return result
 
@@ -130,7 +142,8 @@ class DetectTask:
     chunk: int
     min_score: float
     boxes: np.ndarray | None   # (stop - start, 5) of these frames; None: the palm detector
-    track: bool = True         # with the palm detector: track from frame to frame within a chunk
+    track: bool = True         # with the palm detector: track from frame to frame (track_frames)
+    redetect_every: int = REDETECT_EVERY
 
 
 _DETECTORS: dict[tuple[str, str], Detector] = {}
@@ -144,21 +157,25 @@ def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
     if (task.model, task.device) not in _DETECTORS:
         _DETECTORS[task.model, task.device] = hand_keypoint_detector(task.model, device=task.device)
     kp, used = _empty(task.stop - task.start)
+    # indices within the task, which starts on a whole redetection period (detect_take_tasks)
     frames = ((k - task.start, image) for k, image in Take(task.take).iter_frames(task.camera, task.start, task.stop))
     _detect_frames(_DETECTORS[task.model, task.device], frames, task.boxes, task.chunk, task.min_score, task.track,
-                   kp, used)
+                   kp, used, redetect_every=task.redetect_every)
     return kp, used
 
 
 def detect_take_tasks(take: Take, model: str, device: str = "auto", boxes: dict[str, np.ndarray] | None = None,
                       cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
-                      frames_per_task: int = 256, track: bool = True) -> list[DetectTask]:
-    """A take's detection split by camera and frame range: whole chunks per task, so that every
-    network call (and every run of the tracker) sees the frames it would in one pass over the
-    camera. Frames past the end of a video cut short are in no task (they stay undetected)."""
-    span = max(1, frames_per_task // chunk) * chunk
+                      frames_per_task: int = 256, track: bool = True,
+                      redetect_every: int = REDETECT_EVERY) -> list[DetectTask]:
+    """A take's detection split by camera and frame range: whole chunks per task (when tracking,
+    whole redetection periods), so that every network call and every run of the tracker sees the
+    frames it would in one pass over the camera. Frames past the end of a video cut short are in no
+    task (they stay undetected)."""
+    unit = redetect_every if track and boxes is None else chunk
+    span = max(1, frames_per_task // unit) * unit
     return [DetectTask(str(take.path.resolve()), cam, start, min(start + span, n), model, device, chunk, min_score,
-                       None if boxes is None else boxes[cam][start:start + span], track)
+                       None if boxes is None else boxes[cam][start:start + span], track, redetect_every)
             for cam in (cameras or take.cameras) for n in (take.readable_frames(cam),) for start in range(0, n, span)]
 
 
@@ -198,14 +215,15 @@ def _camera_keypoints(kp: np.ndarray, used: np.ndarray) -> CameraKeypoints:
 
 
 def _detect_frames(detector: Detector, frames, boxes: np.ndarray | None, chunk: int, min_score: float,
-                   track: bool, kp: np.ndarray, used: np.ndarray, done: Callable[[int], None] = lambda n: None) -> None:
-    """Detect `chunk` frames ((index, image) pairs) at a time into kp and used; done(frames) after
-    each batch."""
+                   track: bool, kp: np.ndarray, used: np.ndarray, done: Callable[[int], None] = lambda n: None,
+                   redetect_every: int = REDETECT_EVERY, search_every: int = SEARCH_EVERY) -> None:
+    """Detect (index, image) pairs into kp and used, `chunk` frames at a time; done(frames) after
+    each chunk. With `track` and no boxes, track_frames."""
+    if track and boxes is None:
+        track_frames(detector, frames, min_score, kp, used, redetect_every, search_every, chunk, done)
+        return
     while batch := list(islice(frames, chunk)):
-        if track and boxes is None:
-            _track_batch(detector, batch, min_score, kp, used)
-        else:
-            _detect_batch(detector, batch, boxes, min_score, kp, used)
+        _detect_batch(detector, batch, boxes, min_score, kp, used)
         done(len(batch))
 
 
@@ -228,26 +246,83 @@ def _detect_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], boxes
     used[index] = given
 
 
-def _track_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], min_score: float,
-                 kp: np.ndarray, used: np.ndarray) -> None:
-    """Keypoints of a batch of frames as MediaPipe's tracker finds them: the palm detector and two
-    passes of the keypoint model on the batch's first frame and wherever the hand was lost (its
-    presence below min_score), one pass on the crop around the previous frame's keypoints on every
-    other frame. The batch starts afresh, so a take split into whole batches gives the same."""
-    scale = detector.model.crop.box_scale
-    previous = None
-    for k, image in batch:
-        found = None
+def track_frames(detector: Detector, frames, min_score: float, kp: np.ndarray, used: np.ndarray,
+                 redetect_every: int = REDETECT_EVERY, search_every: int = SEARCH_EVERY, report_every: int = 16,
+                 done: Callable[[int], None] = lambda n: None) -> None:
+    """Keypoints of (index, image) pairs, in order, as MediaPipe's tracker finds them, into kp and used.
+
+    Where the hand was found in the previous frame (presence >= min_score), one pass of the keypoint
+    model on the crop around its keypoints. Elsewhere the palm detector and two passes: at every
+    index that is a multiple of `redetect_every` (a fresh start, so that a take split into whole
+    periods gives the same), at the frame where the tracked hand is lost, and, while no hand is
+    found, at one index in `search_every` and at the last frame of a period; where it finds the hand,
+    the frames it skipped are tracked backwards from there. done(frames) every `report_every` frames.
+    (redetect_every=16, search_every=1: the tracker of earlier rounds.)
+    """
+    previous = None                    # the last frame's keypoints while the hand is tracked
+    skipped: list[tuple[int, np.ndarray]] = []   # frames not yet searched while no hand is found
+    count = 0
+
+    def search(k: int, image: np.ndarray) -> None:
+        nonlocal previous, skipped
+        _detect_batch(detector, [(k, image)], None, min_score, kp, used)
+        previous = _tracked(kp[k], min_score)
         if previous is not None:
-            rect = bx.rects_from_keypoints(previous[None])
-            found = detector.detect_rects([image], [rect], refine=0)[0][0]
-            # the box that, enlarged by the model's box scale, is the crop: as the palm's boxes
-            given = np.r_[rect[0, :2] - rect[0, 2] / (2 * scale), rect[0, :2] + rect[0, 2] / (2 * scale), rect[0, 4]]
-        if found is None or not found[0, 2] >= min_score:
-            _detect_batch(detector, [(k, image)], None, min_score, kp, used)
-            found, given = kp[k].astype(np.float64), used[k]
+            _track_backwards(detector, skipped, previous, min_score, kp, used)
+        skipped = []
+
+    for k, image in frames:
+        if k % redetect_every == 0:
+            if skipped:
+                search(*skipped.pop())
+            previous, skipped = None, []
+        if previous is not None:
+            found, given = _track_one(detector, image, previous)
+            previous = _tracked(found, min_score)
+            if previous is not None:
+                kp[k], used[k] = found, given
+            else:
+                search(k, image)          # lost here: look at once
+        elif k % search_every == 0 or k % redetect_every == 0:
+            search(k, image)
+        else:
+            skipped.append((k, image))
+        count += 1
+        if count % report_every == 0:
+            done(report_every)
+    if skipped:
+        search(*skipped.pop())
+    if count % report_every:
+        done(count % report_every)
+
+
+def _tracked(keypoints: np.ndarray, min_score: float) -> np.ndarray | None:
+    """Keypoints (21,3) to track from, or None where the hand is not (presence under min_score, NaN)."""
+    keypoints = np.asarray(keypoints, np.float64)
+    return keypoints if keypoints[0, 2] >= min_score and np.isfinite(keypoints[:, :2]).all() else None
+
+
+def _track_one(detector: Detector, image: np.ndarray, previous: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One pass on the crop around `previous` keypoints: (keypoints (21,3), used box and angle (5,))."""
+    scale = detector.model.crop.box_scale
+    rect = bx.rects_from_keypoints(previous[None])
+    found = detector.detect_rects([image], [rect], refine=0)[0][0]
+    # the box that, enlarged by the model's box scale, is the crop: as the palm's boxes
+    given = np.r_[rect[0, :2] - rect[0, 2] / (2 * scale), rect[0, :2] + rect[0, 2] / (2 * scale), rect[0, 4]]
+    return found, given
+
+
+def _track_backwards(detector: Detector, skipped: list[tuple[int, np.ndarray]], start: np.ndarray,
+                     min_score: float, kp: np.ndarray, used: np.ndarray) -> None:
+    """Track from keypoints `start` back through the skipped frames (latest first) while the hand
+    stays found."""
+    previous = start
+    for k, image in reversed(skipped):
+        found, given = _track_one(detector, image, previous)
+        previous = _tracked(found, min_score)
+        if previous is None:
+            return
         kp[k], used[k] = found, given
-        previous = found if found[0, 2] >= min_score and np.isfinite(found[:, :2]).all() else None
 
 
 def write_keypoints_h5(path: str | Path, data: TakeKeypoints) -> None:

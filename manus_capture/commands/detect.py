@@ -9,6 +9,7 @@ import click
 
 from dataset_tools.keypoints import hand_keypoint_detector
 from dataset_tools.keypoints.keypoints2d import (
+    REDETECT_EVERY,
     TakeKeypoints,
     box_source,
     detect_take_tasks,
@@ -38,21 +39,23 @@ from .cluster import cluster_options
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
               help="onnxruntime provider: CUDA when available (auto), or forced.")
 @click.option("--chunk", type=click.IntRange(1), default=16, show_default=True,
-              help="Frames per network call; when tracking, the palm detector looks afresh at the first frame "
-                   "of every chunk.")
+              help="Frames per network call with --boxes or --no-track.")
 @click.option("--track/--no-track", default=True, show_default=True,
               help="Without --boxes: crop each frame around the previous frame's keypoints (one pass of the "
                    "keypoint model), the palm detector only where the hand is lost, as MediaPipe tracks; "
                    "--no-track runs the palm detector and two passes in every frame.")
+@click.option("--redetect-every", type=click.IntRange(1), default=REDETECT_EVERY, show_default=True,
+              help="When tracking, the palm detector looks afresh at every this many frames of a camera.")
 @click.option("--min-score", type=click.FloatRange(0, 1), default=0.5, show_default=True,
               help="Palm detector score threshold.")
 @cluster_options("by camera and frame range")
 @click.option("--frames-per-task", type=click.IntRange(1), default=256, show_default=True,
-              help="Frames of one camera per task (rounded to whole chunks).")
+              help="Frames of one camera per task (rounded to whole chunks; when tracking, to whole "
+                   "--redetect-every periods).")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str | None, output: Path | None,
-            device: str, chunk: int, track: bool, min_score: float, workers: int, scheduler: str | None,
-            frames_per_task: int, force: bool) -> None:
+            device: str, chunk: int, track: bool, redetect_every: int, min_score: float, workers: int,
+            scheduler: str | None, frames_per_task: int, force: bool) -> None:
     """Detect 2D hand keypoints (21 joints, MediaPipe order) in every view of TAKE.
 
     Writes TAKE/keypoints2d.h5: per camera, keypoints (F,21,3) [x, y, confidence] indexed by the
@@ -72,7 +75,7 @@ def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str |
     total = sum(tk.readable_frames(c) for c in cams)
     start = time.perf_counter()
     model = str(Path(model_name).resolve()) if model_name.endswith(".toml") else model_name  # for other processes
-    tasks = detect_take_tasks(tk, model, device, boxes, cams, chunk, min_score, frames_per_task, track)
+    tasks = detect_take_tasks(tk, model, device, boxes, cams, chunk, min_score, frames_per_task, track, redetect_every)
     with Bars(unit="frame") as bars:
         result = detect_tasks(tk, tasks, workers, scheduler, progress=bars)
     elapsed = time.perf_counter() - start

@@ -85,6 +85,8 @@ def extend(take_dir: Path, seconds: float, distinct: int | None = None) -> int:
         # the recorder keeps reading until a frame arrives at or after the take's end, and keeps it
         n = int(np.ceil((end_ns - device[0] - latency) / period)) + 1
         packets = list(take.packets(cam))[:distinct]
+        if distinct and len(packets) < distinct:
+            raise SystemExit(f"{take_dir}: camera {cam} recorded {len(packets)} frames, fewer than {distinct}")
         path = take.video_file(cam)
         tmp = path.with_suffix(".extending.mkv")
         writer = MkvWriter(tmp, entry["width"], entry["height"], entry["fps"], name=cam, fsync=False)
@@ -116,7 +118,8 @@ def main() -> None:
     parser.add_argument("--resolution", default="1280x720")
     parser.add_argument("--fps", type=float, default=120.0)
     parser.add_argument("--distinct", type=int, default=4, help="rendered frames per camera")
-    parser.add_argument("--pace", type=float, default=3.0, help="seconds of the grasp the rendered frames begin")
+    parser.add_argument("--pace", type=float, default=3.0,
+                        help="length in seconds of the grasp whose first frames are rendered (its pace)")
     args = parser.parse_args()
     size = tuple(int(v) for v in args.resolution.lower().split("x"))
     config = make_rig("cube53", cameras=args.cameras, resolution=size, fps=args.fps, seed=0)

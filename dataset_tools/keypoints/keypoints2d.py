@@ -257,7 +257,7 @@ def track_frames(detector: Detector, frames, min_score: float, kp: np.ndarray, u
     periods gives the same), at the frame where the tracked hand is lost, and, while no hand is
     found, at one index in `search_every` and at the last frame of a period; where it finds the hand,
     the frames it skipped are tracked backwards from there. done(frames) every `report_every` frames.
-    (redetect_every=16, search_every=1: the tracker of earlier rounds.)
+    (redetect_every=16, search_every=1: as the tracker of earlier rounds.)
     """
     previous = None                    # the last frame's keypoints while the hand is tracked
     skipped: list[tuple[int, np.ndarray]] = []   # frames not yet searched while no hand is found

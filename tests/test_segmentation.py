@@ -326,3 +326,57 @@ def test_segmenting_a_take_reads_each_video_once(tmp_path, monkeypatch):
         packets[n] = read[f"t{n}"]
     assert packets[60] <= 2.5 * packets[30], packets
     assert packets == {30: 2 * 30, 60: 2 * 60}   # each camera's packets once
+
+
+def test_voxels_drawn_where_their_volume_projects():
+    """Each voxel is drawn as the box its corners project to: on 24 views of a ball of 5 mm voxels
+    (about 3 px at 320x180) the drawing is the set of pixels whose centres the voxels cover, found
+    to a tenth of a pixel (points spread through every voxel, 8 per axis, drawn at 5 times the
+    resolution, the gaps closed): no pixel missed, IoU 0.954-1.000 measured (a box reaches beyond
+    a cube seen obliquely). Boxes 0.8 times their size miss up to 123 px a view, 1.25 times reach
+    IoU 0.902."""
+    from dataset_tools.segmentation.multiview import Occupancy, project_occupancy
+    from rig.layouts import make_rig
+    from rig.sim.cube import true_cameras
+
+    rig = true_cameras(make_rig("cube53", cameras=24, resolution=(320, 180)))
+    g = np.arange(-0.04, 0.04001, 0.005)
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    ball = grid[np.linalg.norm(grid - 0.001, axis=1) <= 0.035] + [0.01, -0.02, 0.05]
+    drawn = project_occupancy(rig, Occupancy(ball, 0.005), (180, 320))
+    steps = (np.arange(8) + 0.5) / 8 * 0.005 - 0.0025
+    inner = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3)
+    fine = np.rint(rig.project((ball[:, None] + inner[None]).reshape(-1, 3)) * 5).astype(np.int64)
+    for c in range(len(rig)):
+        x, y = fine[c, :, 0], fine[c, :, 1]
+        ok = (x >= 0) & (y >= 0) & (x < 1600) & (y < 900)
+        sampled = np.zeros((900, 1600), np.uint8)
+        sampled[y[ok], x[ok]] = 1
+        # pixel (i, j)'s centre is the fine pixel (5i, 5j)
+        covered = cv2.morphologyEx(sampled, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))[::5, ::5] > 0
+        assert covered.sum() > 250
+        assert not (covered & ~drawn[c]).any(), c
+        assert iou(drawn[c], covered) >= 0.95, (c, iou(drawn[c], covered))
+
+
+def test_mask_store_writes_the_tiles_around_each_mask(tmp_path):
+    """On disk, masks are stored in tiles and only the tiles around a view's mask are written: the
+    masks read back as they were put, at the image's edges and across tiles too, and the views
+    without a mask take no space."""
+    from dataset_tools.segmentation.store import MaskStore
+
+    shape = (3, 2, 400, 700)   # tiles of 180 x 320: the last row and column of tiles cut short
+    hand = np.zeros(shape, bool)
+    hand[0, 0, 170:200, 300:340] = True    # across four tiles
+    hand[1, 1, 390:, 690:] = True          # the bottom-right corner
+    hand[2, 0, 5:9, 5:9] = True
+    obj = np.zeros(shape, bool)
+    obj[2, 1, 170:200, 10:20] = True
+    store = MaskStore(shape, tmp_path / "masks.h5")
+    store.put(0, hand[:2], obj[:2])
+    store.put(2, hand[2:], obj[2:])
+    assert np.array_equal(store.hand[:], hand) and np.array_equal(store.object[:], obj)
+    assert store.hand.id.get_num_chunks() == 4 + 1 + 1
+    assert store.object.id.get_num_chunks() == 2
+    store.close()
+    assert not (tmp_path / "masks.h5").exists()

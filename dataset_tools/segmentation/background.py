@@ -230,6 +230,8 @@ def remove_small(mask: np.ndarray, min_area: int) -> np.ndarray:
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
     keep = stats[:, cv2.CC_STAT_AREA] >= min_area
     keep[0] = False
+    if keep[1:].all():   # nothing to remove (most views): no pass over the labels
+        return np.array(mask, bool)
     return keep[labels]
 
 

@@ -32,7 +32,8 @@ def paint_masks(images: np.ndarray, hand_masks: np.ndarray, key: PaintKey, min_a
     far = np.linalg.norm(chroma - key.colour, axis=-1) > 3 * key.spread + 0.03
     skin = hand_masks & far
     if np.count_nonzero(skin) < 20:
-        raise SegmentationError(f"paint: only {np.count_nonzero(skin)} hand pixels of skin colour; no hand to find paint on")
+        raise SegmentationError(f"paint: only {np.count_nonzero(skin)} hand pixels of skin colour; "
+                                "no hand to find paint on")
     base = np.median(chroma[skin], axis=0)
     out = np.zeros(hand_masks.shape, bool)
     for c in range(len(images)):

@@ -22,7 +22,6 @@ from dataset_tools.segmentation.takes import (
     write_overlays,
 )
 from manus_capture.bars import Bars
-from manus_capture.paint_contact import paint_on_surface
 from manus_core.cameras import CameraRig
 from manus_core.dataset import read_dataset
 from manus_core.errors import SegmentationError
@@ -112,6 +111,9 @@ def _paint_on_surface(output: Path, key: str, rig: CameraRig, result: Segmentati
     of this recording of the take; returns the arrays and the summary line's part about them."""
     if result.paint is None:
         return {}, ""
+    # here, not at the top: the template poses its points with torch, whose import (1.4 s, 220 MB)
+    # only a canonical take's paint needs
+    from manus_capture.paint_contact import paint_on_surface
     dataset = read_dataset(output) if output.exists() else None
     if dataset is None or key not in dataset or "annotate" not in dataset.stages(key):
         click.echo(f"note: {output} has no poses of {key} (run annotate first): no contact per surface point",

@@ -55,11 +55,13 @@ def _pure_colours(image: np.ndarray, labels: np.ndarray, k: int, thin: bool, at:
     dist, idx = cv2.distanceTransformWithLabels((~pure).astype(np.uint8), cv2.DIST_L2, 5,
                                                 labelType=cv2.DIST_LABEL_PIXEL)
     # idx numbers the zero (pure) pixels in row-major order, from 1
-    ys, xs = np.nonzero(pure)
-    nearest = np.clip(idx[at] - 1, 0, len(ys) - 1)
-    ny, nx = ys[nearest], xs[nearest]
-    weight = cv2.blur(pure.astype(np.float32), (3, 3))[ny, nx]
-    mean = cv2.blur(image * pure[..., None], (3, 3))[ny, nx] / np.maximum(weight, 1e-6)[:, None]
+    flat = np.flatnonzero(pure)
+    ny, nx = np.divmod(flat[np.clip(idx[at] - 1, 0, len(flat) - 1)], pure.shape[1])
+    mask = pure.astype(np.uint8)
+    weight = cv2.blur(mask.astype(np.float32), (3, 3))[ny, nx]
+    # the pure pixels' colours, others zero (OpenCV's masked copy: a product with the mask is 3x slower)
+    pure_image = cv2.copyTo(image, mask, np.zeros_like(image))
+    mean = cv2.blur(pure_image, (3, 3))[ny, nx] / np.maximum(weight, 1e-6)[:, None]
     return mean, dist[at]
 
 

@@ -54,7 +54,9 @@ def record_first_frames(config: RigConfig, session: Path, take: str, kind: str, 
     """Record the first `frames` frames of every camera of a take of `kind` lasting `pace_s`:
     its motion at the pace of that take, without rendering the rest. The take ends as a stopped
     one would; extend() makes it whole."""
-    stop, want = StopFlag(), frames * len(config.cameras)
+    # the count is of all cameras' stored frames together, and the writers of 53 cameras are up to a
+    # frame apart when it is reached: one frame a camera more, or one of them has too few for extend()
+    stop, want = StopFlag(), (frames + 1) * len(config.cameras)
 
     def progress(_: str, stored: int, total: int) -> None:
         if stored >= want:

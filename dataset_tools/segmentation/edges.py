@@ -109,24 +109,31 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
         names.append(k)
         near.append(close)
     reachable = np.stack(([np.ones(len(ys), bool)] if background is not None else []) + near)
-    # every pair of ends, each at every shade, all at once: (K, N, 3) for K pairs of colours. A class
-    # with itself is one pair, its brightest shade to its darkest: the shades lie on one line through
-    # black, so that segment holds every pixel between two of them, and either end names the class
-    shaded = [[e * f for f in (SHADES if n else (1.0,))] for e, n in zip(ends, names)]
+    # every pair of ends, each at every shade: each pixel's distance to the segment between the two
+    # colours, (K, N) for K pairs. A class with itself is one pair, its brightest shade to its
+    # darkest: the shades lie on one line through black, so that segment holds every pixel between
+    # two of them, and either end names the class. Colours are (3, N), a channel a row, so that the
+    # products run over contiguous rows (over (N, 3) they strode through every pixel's three values)
+    shaded = [[np.ascontiguousarray(e.T) * np.float32(f) for f in (SHADES if n else (1.0,))]
+              for e, n in zip(ends, names)]
     pairs = []
     for i in range(len(ends)):
         pairs.append((i, i, shaded[i][0], shaded[i][-1]))
         pairs += [(i, j, x, y) for j in range(i + 1, len(ends)) for x in shaded[i] for y in shaded[j]]
     first = np.array([names[i] for i, _, _, _ in pairs])
     second = np.array([names[j] for _, j, _, _ in pairs])
-    start = np.stack([np.broadcast_to(end, pixel.shape) for _, _, _, end in pairs])
-    axis = np.stack([np.broadcast_to(end, pixel.shape) for _, _, end, _ in pairs]) - start
-    offset = pixel - start
-    length2 = np.maximum(np.einsum("knc,knc->kn", axis, axis), 1e-6)
-    a = np.clip(np.einsum("knc,knc->kn", offset, axis) / length2, 0.0, 1.0)
-    offset -= a[..., None] * axis
-    residual = np.einsum("knc,knc->kn", offset, offset)
-    residual[~np.stack([reachable[i] & reachable[j] for i, j, _, _ in pairs])] = np.inf
+    px = np.ascontiguousarray(pixel.T)
+    a = np.empty((len(pairs), len(ys)), np.float32)
+    residual = np.empty_like(a)
+    for k, (i, j, end, begin) in enumerate(pairs):
+        axis = end - begin
+        offset = px - begin
+        length2 = np.maximum(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2], 1e-6)
+        t = np.clip((offset[0] * axis[0] + offset[1] * axis[1] + offset[2] * axis[2]) / length2, 0.0, 1.0)
+        offset -= t * axis
+        a[k] = t
+        residual[k] = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]
+        residual[k, ~(reachable[i] & reachable[j])] = np.inf
     # the first pair that explains the pixel best; a pixel no pair may explain keeps its label
     best = np.argmin(residual, axis=0)
     column = np.arange(len(ys))

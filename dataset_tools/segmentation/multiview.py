@@ -35,7 +35,7 @@ CHAMFER_AXIS = 0.955
 # A cell is split in at most this many per axis from one level to the next (8 children).
 MAX_SPLIT = 2
 # The volume that keeps a view's part the strict one does not: hits in this share of the views that
-# see a voxel, and in at least this many views (on a small rig that is what the strict volume asks)
+# see a voxel, and in at least this many views (on a rig of four, no less than the strict volume asks)
 MAJORITY = 0.5
 MAJORITY_MIN_VIEWS = 3
 

@@ -32,8 +32,6 @@ DISTANCE_PAD = 48
 # is at least 0.955 times the Euclidean one: the bound beyond the window is scaled by it.
 CHAMFER_AXIS = 0.955
 
-# A cell is split in at most this many per axis from one level to the next (8 children).
-MAX_SPLIT = 2
 # The volume that keeps a view's part the strict one does not: hits in this share of the views that
 # see a voxel, and in at least this many views (on a rig of four, no less than the strict volume asks)
 MAJORITY = 0.5
@@ -115,7 +113,8 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     """Occupancy of the foreground seen in masks (C,H,W) bool of the rig's views.
 
     Views with an empty mask say nothing (the hand may be hidden from them behind the table) and
-    are left out. A voxel is kept when it is a hit in all but `misses` (or `miss_fraction` of
+    are left out. Cells are halved from `coarse` until they are `voxel` or smaller (Occupancy.voxel
+    says which). A voxel is kept when it is a hit in all but `misses` (or `miss_fraction` of
     them, when more) of the views that see it, and in at least `min_views`: a view can miss
     because something static hides the hand from it (the table from the floor's cameras, which
     see foreground elsewhere), and a big rig has several such views."""
@@ -129,6 +128,8 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     bounds = default_bounds(rig) if bounds is None else np.asarray(bounds, float)
     axes = [np.arange(lo + coarse / 2, hi, coarse) for lo, hi in bounds.T]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    # a cell's 8 halves, as offsets from its centre in units of the half's size
+    halves = np.stack(np.meshgrid(*[(-0.5, 0.5)] * 3, indexing="ij"), -1).reshape(-1, 3)
     size = coarse
     while True:
         seen, hit = _votes(rig, masks, dist, use, points, size / 2)
@@ -136,10 +137,8 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
         points = points[(hit >= np.maximum(seen - allowed, min_views))]
         if size <= voxel * 1.001 or not len(points):
             return Occupancy(points, size)
-        factor = min(MAX_SPLIT, max(2, int(round(size / voxel))))
-        size = size / factor
-        offsets = (np.stack(np.meshgrid(*[np.arange(factor)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5) * size
-        points = (points[:, None, :] - size * factor / 2 + offsets[None]).reshape(-1, 3)
+        size /= 2
+        points = (points[:, None, :] + halves[None] * size).reshape(-1, 3)
 
 
 def _boxes(rig: CameraRig, centres: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
@@ -248,7 +247,8 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
         supported.append(_supported(labels, count, proj[window], kernel))
     unsupported = [s is not None and not s[1:].all() for s in supported]
     majority_voxels = 0
-    if any(unsupported) and np.count_nonzero(masks.reshape(len(masks), -1).any(axis=1)) >= MAJORITY_MIN_VIEWS:
+    # (a view's window is None where its mask is empty)
+    if any(unsupported) and sum(w is not None for w in windows) >= MAJORITY_MIN_VIEWS:
         # a part apart from the hand that something static hides from several views (the object on
         # the table, from the floor's cameras and, behind the hand, from above: 14 % of the views of
         # make demo's grasp take lost it) is seen by most of the others

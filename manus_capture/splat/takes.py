@@ -310,14 +310,22 @@ def _dataset_take(dataset_path: str | os.PathLike, take_key: str | None, stage: 
 
 
 def hand_frames_from_dataset(dataset_path: str | os.PathLike, take_key: str | None = None) -> HandFrames:
-    """The frame groups of one take of DATASET.h5 (annotate's joint angles and bone lengths).
+    """The frame groups of one take of DATASET.h5 with the pose each frame's own IK fit gave
+    (`joint_angles_raw`; annotate's filtered `joint_angles` where the fit left a DOF undetermined)
+    and annotate's bone lengths.
+
+    A model is fitted to each frame's images, so each frame needs the pose its images show. The
+    1-euro filter trades jitter for lag, and a hand take runs through its poses fast: there the
+    filtered poses lag the images by millimetres (docs/splat.md, "Training poses").
 
     take_key "SESSION/TAKE"; None when the dataset holds one annotated take only. A take without
     annotation is refused (DatasetError names it and the stages it has).
     """
     ds, take_key = _dataset_take(dataset_path, take_key, "annotate")
     ann = ds[take_key]
-    return HandFrames(ann.joint_angles, ann.bone_lengths, ann.frame_index, ann.cameras,
+    own = np.isfinite(ann.joint_angles_raw).all(axis=1)
+    angles = np.where(own[:, None], ann.joint_angles_raw, ann.joint_angles)
+    return HandFrames(angles, ann.bone_lengths, ann.frame_index, ann.cameras,
                       f"{dataset_path}:{take_key}", take_key)
 
 

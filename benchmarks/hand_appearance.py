@@ -3,7 +3,7 @@
     python benchmarks/hand_appearance.py DEMO [--iterations 400]
 
 DEMO is the output folder of `manus-capture demo`. MANUS-Hand is trained as the demo trains it
-(ModelInputs: the hand take's poses from annotate, segment's hand masks, every camera), once more
+(ModelInputs: the hand take's per-frame IK fits from annotate, segment's hand masks, every camera), once more
 with the simulator's true joint angles and bone lengths in their place (an ablation: scoring
 code may read the truth, the pipeline never does), and each is scored on the held-out poses:
 

@@ -252,7 +252,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
 @command.command("hand")
 @click.option("--take", type=click.Path(path_type=Path), required=True, help="The subject's hand take.")
 @click.option("--dataset", "dataset_path", type=click.Path(path_type=Path), default=None,
-              help="DATASET.h5 from annotate: joint angles, bone lengths and frame groups of the take.")
+              help="DATASET.h5 from annotate: each frame's own IK fit (joint_angles_raw), bone lengths "
+                   "and frame groups of the take.")
 @click.option("--dataset-take", default=None, help="SESSION/TAKE key in --dataset (default: its only take).")
 @click.option("--truth", is_flag=True, help="Joint angles and bone lengths from the take's ground_truth.h5 "
                                             "(simulated takes) instead of --dataset.")

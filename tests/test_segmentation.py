@@ -400,7 +400,7 @@ def test_mask_store_writes_the_tiles_around_each_mask(tmp_path):
     """On disk, masks are stored in tiles and only the tiles around a view's mask are written: the
     masks read back as they were put, at the image's edges and across tiles too, and the views
     without a mask take no space."""
-    from dataset_tools.segmentation.store import MaskStore
+    from dataset_tools.segmentation.store import MaskStore, ViewMasks
 
     shape = (3, 2, 400, 700)   # tiles of 180 x 320: the last row and column of tiles cut short
     hand = np.zeros(shape, bool)
@@ -417,3 +417,17 @@ def test_mask_store_writes_the_tiles_around_each_mask(tmp_path):
     assert store.object.id.get_num_chunks() == 2
     store.close()
     assert not (tmp_path / "masks.h5").exists()
+    # as segmentation's tasks hand them over: each view in a window with a margin around its masks
+    # (here two tiles wide), one of the two masks empty
+    window = (slice(150, 220), slice(100, 700))
+    views = [ViewMasks(0, 0, window, hand[0, 0][window], obj[0, 0][window]),
+             ViewMasks(1, 1, (slice(380, 400), slice(600, 700)), hand[1, 1, 380:, 600:], obj[1, 1, 380:, 600:])]
+    for path in (tmp_path / "views.h5", None):
+        store = MaskStore(shape, path)
+        store.put_views(0, views)
+        expected = hand.copy()
+        expected[2] = False
+        assert np.array_equal(store.hand[:], expected) and not store.object[:].any()
+        if path is not None:
+            assert store.hand.id.get_num_chunks() == 4 + 1 and store.object.id.get_num_chunks() == 0
+        store.close()

@@ -88,7 +88,7 @@ class BackgroundModel:
         return np.sqrt(self._score2(image, 1 / self.gain(image), whole))
 
     def foreground(self, image: np.ndarray, threshold: float = THRESHOLD_SIGMA, min_area: int = 0,
-                   block: int | None = None, gain: float | None = None) -> np.ndarray:
+                   block: int | None = None, gain: float | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """Boolean foreground mask (H,W): different from the background, small specks removed.
 
         The image is first compared with the background in blocks of `block` px (default: larger
@@ -96,11 +96,12 @@ class BackgroundModel:
         computed per pixel, so the cost follows the foreground's area, not the image's. Inside
         those windows the mask is the per-pixel one exactly; a foreground too faint and small to
         move a block's mean by THRESHOLD_SIGMA * BLOCK_SHARE is not looked for. `gain`: the image's
-        (self.gain), when known."""
+        (self.gain), when known. `out`: an (H,W) bool array of zeros to write the mask into (a
+        frame group's masks, written only where its windows are)."""
         self._check(image)
         inverse_gain = 1 / (self.gain(image) if gain is None else gain)
         block = max(1, self.shape[0] // COARSE_HEIGHT) if block is None else int(block)
-        mask = np.zeros(self.shape, bool)
+        mask = np.zeros(self.shape, bool) if out is None else out
         windows = self._windows(image, inverse_gain, threshold, block) if block > 1 else [
             (slice(0, self.shape[0]), slice(0, self.shape[1]))]
         for rows, cols in windows:

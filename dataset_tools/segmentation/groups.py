@@ -17,7 +17,7 @@ from manus_core.take import Take
 from ..tasks import run_tasks
 from .background import BackgroundModel
 from .colour import ColourModel
-from .store import MaskStore
+from .store import MaskStore, ViewMasks
 from .views import hand_object_masks
 
 GROUPS_PER_TASK = 64
@@ -71,8 +71,8 @@ class SegmentTask:
     shape: tuple[int, int]
 
 
-def segment_range(task: SegmentTask) -> tuple[np.ndarray, np.ndarray]:
-    """Hand and object masks (n,C,H,W) of a SegmentTask's groups."""
+def segment_range(task: SegmentTask) -> list[ViewMasks]:
+    """Hand and object masks of a SegmentTask's groups, by view."""
     take = Take(task.take)
     backgrounds = backgrounds_for(take, task.rig.ids, Take(task.background), {"warnings": []})
     return segment_groups(take, task.rig, backgrounds, task.model, task.frame_index, task.shape)
@@ -94,7 +94,7 @@ def segment_in_tasks(take: Take, rig: CameraRig, background: Path, model: Colour
     for task, out in run_tasks(segment_range, tasks, workers, scheduler, key=_task_key):
         if isinstance(out, Exception):
             raise out
-        store.put(task.start, *out)
+        store.put_views(task.start, out)
         done += len(task.frame_index)
         progress("segment", done, T)
 
@@ -104,19 +104,20 @@ def _task_key(task: SegmentTask) -> str:
 
 
 def segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_index: np.ndarray,
-                   shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Hand and object masks (T,C,H,W) of the frame groups frame_index (T,C), cameras of `rig`."""
+                   shape: tuple[int, int]) -> list[ViewMasks]:
+    """Hand and object masks of the frame groups frame_index (T,C), cameras of `rig`: the views that
+    show either, each in its window."""
     h, w = shape
     object_take = take.meta.get("kind") == "object"
-    hand = np.zeros((len(frame_index), len(rig), h, w), bool)
-    obj = np.zeros_like(hand)
+    out = []
     # one sequential pass over each camera's video: a group's frames come later in every video
     # than the previous group's (reading each frame from the start made the cost grow with the
     # square of the take's length)
     streams = [take.stream_frames(cam, frame_index[:, c]) for c, cam in enumerate(rig.ids)]
     current = [(-1, None)] * len(rig)
+    # one buffer for every group: a view not captured has no background and its pixels are not read
+    images = np.zeros((len(rig), h, w, 3), np.uint8)
     for t in range(len(frame_index)):
-        images = np.zeros((len(rig), h, w, 3), np.uint8)
         present = frame_index[t] >= 0
         for c in np.flatnonzero(present):
             while current[c][0] < frame_index[t, c]:
@@ -126,8 +127,10 @@ def segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_i
                                         f"(frame {frame_index[t, c]} after {current[c][0]})")
             images[c] = current[c][1]
         bgs = [b if p else None for b, p in zip(backgrounds, present)]
-        found_hand, found_object, _ = hand_object_masks(images, bgs, rig, model)
-        hand[t], obj[t] = (found_object, found_hand) if object_take else (found_hand, found_object)
-    return hand, obj
-
-
+        hand, obj, report = hand_object_masks(images, bgs, rig, model)
+        if object_take:
+            hand, obj = obj, hand
+        # copies: a view into the group's masks would keep all of them
+        out += [ViewMasks(t, c, window, hand[c][window].copy(), obj[c][window].copy())
+                for c, window in enumerate(report["windows"]) if window is not None]
+    return out

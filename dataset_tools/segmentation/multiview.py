@@ -259,7 +259,8 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
                                      [w if u else None for w, u in zip(windows, unsupported)])
             for c in np.flatnonzero(unsupported):
                 supported[c] |= _supported(parts[c], len(supported[c]), more[c][windows[c]], kernel)
-    out = masks.copy()
+    # a view's mask is empty outside its window: only the windows are written
+    out = np.zeros_like(masks)
     dropped, filled = [], []
     for c, (mask, proj, window) in enumerate(zip(masks, projected, windows)):
         if window is None:

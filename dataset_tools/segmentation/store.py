@@ -5,15 +5,41 @@ a 10 s take at 120 FPS would be 117 GB)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from manus_core.scratch import ScratchArrays
 
+from .background import bounding_window
+
 HAND, OBJECT = "masks/hand", "masks/object"
 # (rows, columns): a 1280x720 view in 16 tiles; 320x180, the demo's, in one
 TILE = (180, 320)
+
+
+@dataclass(frozen=True)
+class ViewMasks:
+    """One view's hand and object masks (h,w) bool inside `window` (rows, columns of the image);
+    both are empty outside it. `group` counts from the first group of the masks it comes with.
+    A task hands its masks over this way: a hand is a small part of a 1280x720 view, and whole
+    views were 33 MB of mostly empty arrays a task at four cameras, new memory for every task
+    (the pages of a new array cost more to touch the first time than the masks to compute)."""
+
+    group: int
+    camera: int
+    window: tuple[slice, slice]
+    hand: np.ndarray
+    object: np.ndarray
+
+
+def views_of(hand: np.ndarray, obj: np.ndarray) -> list[ViewMasks]:
+    """The views of whole masks (n,C,H,W) that hold a hand or object pixel, each in its box."""
+    return [ViewMasks(int(t), int(c), window, hand[t, c][window], obj[t, c][window])
+            for t, c in zip(*np.nonzero((hand | obj).any(axis=(2, 3))))
+            for window in [bounding_window(hand[t, c] | obj[t, c], 0)]]
 
 
 class MaskStore(ScratchArrays):
@@ -27,23 +53,33 @@ class MaskStore(ScratchArrays):
         self.hand, self.object = (self.array(name, shape, bool, (1, 1, *self.tile)) for name in (HAND, OBJECT))
 
     def put(self, start: int, hand: np.ndarray, obj: np.ndarray) -> None:
-        """The masks (n,C,H,W) of groups start ... start + n - 1."""
-        for array, masks in ((self.hand, hand), (self.object, obj)):
-            if isinstance(array, np.ndarray):
-                array[start:start + len(masks)] = masks
-                continue
-            # On disk only the tiles around a view's mask are written: a tile never written reads as
-            # False and takes no space (in the file, and in DATASET.h5, which copies the tiles as they
-            # are), while compressing an empty one costs as much as a full one (a whole 1280x720 view
-            # 1.4-1.9 ms; a hand's box covers a third of it or less)
-            for t, c in zip(*np.nonzero(masks.any(axis=(2, 3)))):
-                rows, cols = self._tiles(masks[t, c])
-                array[start + t, c, rows, cols] = masks[t, c, rows, cols]
+        """The whole masks (n,C,H,W) of groups start ... start + n - 1."""
+        self.put_views(start, views_of(hand, obj))
 
-    def _tiles(self, mask: np.ndarray) -> tuple[slice, slice]:
+    def put_views(self, start: int, views: Iterable[ViewMasks]) -> None:
+        """The masks of views of groups from `start` on (ViewMasks.group counts from it); a view not
+        given stays empty."""
+        for view in views:
+            for array, masks in ((self.hand, view.hand), (self.object, view.object)):
+                if isinstance(array, np.ndarray):
+                    array[(start + view.group, view.camera, *view.window)] = masks
+                elif masks.any():
+                    # On disk only the tiles around a view's mask are written: a tile never written
+                    # reads as False and takes no space (in the file, and in DATASET.h5, which copies
+                    # the tiles as they are), while compressing an empty one costs as much as a full
+                    # one (a whole 1280x720 view 1.4-1.9 ms; a hand's box covers a third of it or less)
+                    tiles = self._tiles(masks, view.window, array.shape[2:])
+                    # the window's part in the tiles (the rest of it is empty)
+                    common = [slice(max(w.start, t.start), min(w.stop, t.stop)) for w, t in zip(view.window, tiles)]
+                    block = np.zeros([t.stop - t.start for t in tiles], bool)
+                    block[tuple(slice(c.start - t.start, c.stop - t.start) for c, t in zip(common, tiles))] = \
+                        masks[tuple(slice(c.start - w.start, c.stop - w.start) for c, w in zip(common, view.window))]
+                    array[(start + view.group, view.camera, *tiles)] = block
+
+    def _tiles(self, masks: np.ndarray, window: tuple[slice, slice], shape: tuple[int, int]) -> tuple[slice, slice]:
         """The rows and columns of the tiles that hold the (nonempty) mask's bounding box."""
         out = []
         for axis, size in enumerate(self.tile):
-            hit = np.flatnonzero(mask.any(axis=1 - axis))
-            out.append(slice(hit[0] // size * size, min((hit[-1] // size + 1) * size, mask.shape[axis])))
+            hit = np.flatnonzero(masks.any(axis=1 - axis)) + window[axis].start
+            out.append(slice(hit[0] // size * size, min((hit[-1] // size + 1) * size, shape[axis])))
         return out[0], out[1]

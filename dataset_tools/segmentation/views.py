@@ -29,7 +29,7 @@ def foreground_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel |
     gains = [None] * len(images) if gains is None else gains
     for c, (image, bg, gain) in enumerate(zip(images, backgrounds, gains)):
         if bg is not None:
-            out[c] = bg.foreground(image, min_area=min_area, gain=gain)
+            bg.foreground(image, min_area=min_area, gain=gain, out=out[c])
     return out
 
 
@@ -82,7 +82,8 @@ def _object_by_colour(images: np.ndarray, fg: np.ndarray, windows: Sequence[Wind
 def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None],
                       rig: CameraRig | None = None, object_model: ColourModel | None = None,
                       min_area: int = 8) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Hand and object masks (C,H,W) of one frame group, and a report.
+    """Hand and object masks (C,H,W) of one frame group, and a report (with each view's
+    `windows`: the masks are empty outside them; None where both are empty).
 
     Foreground against the empty cube; with a rig, made consistent across the views; split by
     colour: pixels more likely of the object's colour than of the skin's are object, the rest hand
@@ -97,6 +98,7 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     # the colours and the edges are decided in a window around the foreground (a hand is a small
     # part of a 1280x720 view): every pixel they look at is in it, so the labels are the same
     windows = [bounding_window(m, EDGE_MARGIN) for m in fg]
+    report["windows"] = windows
     is_object = np.zeros_like(fg) if object_model is None else _object_by_colour(images, fg, windows, object_model)
     obj = np.zeros(fg.shape, bool)
     # each view's window is read from fg before the hand's labels replace it there

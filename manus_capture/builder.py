@@ -18,6 +18,7 @@ from dataset_tools.annotate import take_key
 from dataset_tools.segmentation.takes import segment_take
 from manus_capture.splat.gaussians import Gaussians
 from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
+from manus_capture.splat.losses import installed_lpips, load_lpips
 from manus_capture.splat.optimize import LearningRates
 from manus_capture.splat.takes import (
     HandFrames,
@@ -196,12 +197,14 @@ class ModelInputs:
             # scored over the empty cube, as the cameras see the subjects, and over black as before
             # (silhouette pixels then keep the wall's share against the model's black)
             plain = [dataclasses.replace(v, backgrounds=None) for v in test_views]
-            hand_scores = evaluate_hand(hand, test_poses, test_views, eps2d=SURFACE_EPS2D)
+            # LPIPS as the MANUS paper's table gives it, when its network is installed
+            lpips = load_lpips(None) if installed_lpips() is not None else None
+            hand_scores = evaluate_hand(hand, test_poses, test_views, eps2d=SURFACE_EPS2D, lpips=lpips)
             hand_black = evaluate_hand(hand, test_poses, plain, eps2d=SURFACE_EPS2D)
             object_scores = object_black = {"psnr": np.nan, "psnr_mask": np.nan, "ssim": np.nan}
             if held.any():
                 held_views = views.subset(np.flatnonzero(held))
-                object_scores = evaluate_object(obj, held_views, eps2d=SURFACE_EPS2D)
+                object_scores = evaluate_object(obj, held_views, eps2d=SURFACE_EPS2D, lpips=lpips)
                 object_black = evaluate_object(obj, dataclasses.replace(held_views, backgrounds=None),
                                                eps2d=SURFACE_EPS2D)
             metrics = {"hand_psnr_heldout_poses_db": hand_scores["psnr"],
@@ -210,5 +213,6 @@ class ModelInputs:
                        "object_psnr_heldout_views_db": object_scores["psnr"],
                        "object_psnr_mask_db": object_scores["psnr_mask"], "object_ssim": object_scores["ssim"],
                        "object_psnr_mask_black_db": object_black["psnr_mask"],
+                       "hand_lpips": hand_scores.get("lpips"), "object_lpips": object_scores.get("lpips"),
                        "hand_gaussians": len(hand), "object_gaussians": len(obj)}
         return TrainedModels(hand, obj, metrics)

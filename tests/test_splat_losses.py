@@ -57,8 +57,9 @@ def test_isotropy_zero_at_the_target_ratio():
     assert math.isclose(float(isotropy(torch.tensor([[0.1, 1.0, 1.0]]))), 0.09, rel_tol=1e-6)
 
 
-def test_lpips_off_with_a_warning_without_weights():
-    with pytest.warns(UserWarning, match="LPIPS is off"):
+def test_lpips_off_with_a_warning_without_weights(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))   # a cache where nothing is installed
+    with pytest.warns(UserWarning, match="models install lpips-alex"):
         assert load_lpips(None) is None
 
 

@@ -20,7 +20,6 @@ Layout of the cache (`$XDG_CACHE_HOME` or `~/.cache`, then `manus-capture/`):
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -30,6 +29,8 @@ import tempfile
 import time
 import venv
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +41,7 @@ from onnx import numpy_helper
 
 from manus_core.errors import InstallError, ModelError, ModelNotInstalledError
 from manus_core.progress import Progress, silent
+from manus_core.provenance import file_sha256
 
 INSTALL_HINT = "manus-capture models install {name}"
 
@@ -121,15 +123,7 @@ def model_path(name: str, stem: str) -> Path:
     return bundle_dir(name) / f"{stem}.onnx"
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def _run(cmd: list[str], what: str, hint: str = "") -> str:
+def run_tool(cmd: list[str], what: str, hint: str = "") -> str:
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         lines = [ln.strip() for ln in (proc.stderr or proc.stdout).splitlines() if ln.strip()]
@@ -138,16 +132,18 @@ def _run(cmd: list[str], what: str, hint: str = "") -> str:
     return proc.stdout
 
 
-def _download_wheel(bundle: Bundle, dest: Path) -> Path:
-    # The running interpreter's pip picks the wheel for this interpreter and platform.
-    _run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "--no-input",
-          "--disable-pip-version-check", "--progress-bar", "off", "-d", str(dest), bundle.requirement],
-         f"`pip download --no-deps {bundle.requirement}`",
-         " (is the network or the package index reachable?)")
-    wheels = sorted(dest.glob("*.whl"))
-    if not wheels:
-        raise InstallError(f"`pip download {bundle.requirement}` left no wheel in {dest}")
-    return wheels[0]
+def pip_download(requirement: str, dest: Path, source: bool = False) -> Path:
+    """Download one package file with `pip download --no-deps` into dest (created), nothing
+    installed: the wheel for this interpreter and platform, or with `source` the source
+    distribution (its metadata prepared with this environment's setuptools). Returns its path."""
+    kind = ["--no-binary=:all:", "--no-build-isolation"] if source else ["--only-binary=:all:"]
+    run_tool([sys.executable, "-m", "pip", "download", "--no-deps", *kind, "--no-input",
+              "--disable-pip-version-check", "--progress-bar", "off", "-d", str(dest), requirement],
+             f"`pip download --no-deps {requirement}`", " (is the network or the package index reachable?)")
+    files = sorted(f for f in Path(dest).iterdir() if f.name.endswith((".whl", ".tar.gz", ".zip")))
+    if not files:
+        raise InstallError(f"`pip download {requirement}` left no package file in {dest}")
+    return files[0]
 
 
 def tool_python() -> Path | None:
@@ -168,7 +164,7 @@ def _tool_env(progress: Progress) -> Path:
         shutil.rmtree(env)  # an environment whose creation was interrupted
     progress("converter environment", 0, 1)
     venv.EnvBuilder(with_pip=True, clear=True).create(env)
-    _run([str(python), "-m", "pip", "install", "--no-input", "--disable-pip-version-check", "-q",
+    run_tool([str(python), "-m", "pip", "install", "--no-input", "--disable-pip-version-check", "-q",
           *TOOL_REQUIREMENTS], f"installing the converter ({', '.join(TOOL_REQUIREMENTS)}) into {env}",
          " (is the network or the package index reachable?)")
     marker.write_text("\n".join(TOOL_REQUIREMENTS) + "\n")
@@ -239,20 +235,39 @@ def check_against_reference(onnx_path: Path, reference: Path) -> float:
     return worst
 
 
+@contextmanager
+def install_work(name: str) -> Iterator[Path]:
+    """A work folder for installing model `name`, beside the cache's models (one file system, for
+    publish's rename), removed afterwards."""
+    parent = bundle_dir(name).parent
+    parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=parent))
+    try:
+        yield work
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def publish(staged: Path, name: str, manifest: dict) -> None:
+    """Write `manifest` into the staged folder and put it in place of model `name` in one rename."""
+    (staged / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    final = bundle_dir(name)
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(staged, final)
+
+
 def install(name: str, force: bool = False, progress: Progress = silent) -> bool:
     """Install a model bundle into the cache; returns False when it was already installed.
 
     Reports the stages "download", "converter environment" (the first time), "convert" and
     "check" (one model after the other); the check results go into the manifest."""
     bundle = _bundle(name)
-    final = bundle_dir(name)
     if not force and installed_manifest(name) is not None:
         return False
-    final.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=final.parent))
-    try:
+    with install_work(name) as work:
         progress("download", 0, 1)
-        wheel = _download_wheel(bundle, work / "wheel")
+        wheel = pip_download(bundle.requirement, work / "wheel")
         progress("download", 1, 1)
         tflite_dir = work / "tflite"
         tflite_dir.mkdir()
@@ -266,7 +281,7 @@ def install(name: str, force: bool = False, progress: Progress = silent) -> bool
         progress("convert", 0, 1)
         out = work / "out"
         out.mkdir()
-        _run([str(python), str(Path(__file__).with_name("_tflite_convert.py")), str(out),
+        run_tool([str(python), str(Path(__file__).with_name("_tflite_convert.py")), str(out),
               *(str(tflite_dir / f"{stem}.tflite") for stem in bundle.members)],
              f"converting the models of {wheel.name} with tflite2onnx")
         progress("convert", 1, 1)
@@ -279,7 +294,7 @@ def install(name: str, force: bool = False, progress: Progress = silent) -> bool
             onnx.checker.check_model(model)
             onnx.save(model, str(onnx_path))
             checks[stem] = check_against_reference(onnx_path, out / f"{stem}.reference.npz")
-            files[onnx_path.name] = _sha256(onnx_path)
+            files[onnx_path.name] = file_sha256(onnx_path)
             progress("check", len(files), len(bundle.members))
         staged = work / "staged"
         staged.mkdir()
@@ -288,16 +303,11 @@ def install(name: str, force: bool = False, progress: Progress = silent) -> bool
         # The originals stay beside the conversions: benchmarks compare against the TFLite runtime.
         os.replace(tflite_dir, staged / "tflite")
         manifest = {"name": name, "source": bundle.requirement, "wheel": wheel.name,
-                    "wheel_sha256": _sha256(wheel), "converter": list(TOOL_REQUIREMENTS),
+                    "wheel_sha256": file_sha256(wheel), "converter": list(TOOL_REQUIREMENTS),
                     "files": files, "check_max_abs_diff": checks,
                     "installed": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        (staged / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(staged, final)
+        publish(staged, name, manifest)
         return True
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 def list_models() -> list[dict]:

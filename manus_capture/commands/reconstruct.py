@@ -13,6 +13,7 @@ see docs/splat.md.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from manus_capture.bars import Bars
 from manus_capture.builder import surface_hand, surface_hand_config
 from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
 from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand
-from manus_capture.splat.losses import load_lpips
+from manus_capture.splat.losses import installed_lpips, load_lpips
 from manus_capture.splat.rasterize import EPS2D
 from manus_capture.splat.takes import (
     crop_views,
@@ -123,7 +124,13 @@ def _check_output(output: Path, force: bool) -> None:
 
 
 def _lpips(weights: Path | None, net: str):
-    return None if weights is None else load_lpips(weights, net)
+    """The LPIPS metric: the given weights, else the installed ones, else none (not scored)."""
+    return None if weights is None and installed_lpips(net) is None else load_lpips(weights, net)
+
+
+def _with_lpips_loss(cfg, weight: float):
+    """A training config with `weight` for LPIPS in its loss (the short CPU configs have none)."""
+    return dataclasses.replace(cfg, weights=dataclasses.replace(cfg.weights, lpips=weight))
 
 
 def _scores_text(scores: dict[str, float]) -> str:
@@ -161,7 +168,11 @@ def _common_options(f):
                      help="A take of the empty cube (segment's --background): renders are put over what each "
                           "camera sees of it, as the cameras see the subject, instead of over --background."),
         click.option("--lpips-weights", type=click.Path(path_type=Path, exists=True), default=None,
-                     help="LPIPS state dict (see docs/splat.md); LPIPS is off without it."),
+                     help="LPIPS state dict (see docs/splat.md); default: the one `manus-capture models install "
+                          "lpips-alex` (or lpips-vgg) installed. With either, the held-out views get LPIPS too."),
+        click.option("--lpips-loss", type=click.FloatRange(0), default=0.0, show_default=True,
+                     help="Weight of LPIPS in the training loss (the MANUS paper's: 0.1; 0 in these short CPU "
+                          "settings, where it slowed training by a quarter and gained nothing: docs/splat.md)."),
         click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default="alex", show_default=True),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--threads", type=click.IntRange(1), default=TRAIN_THREADS,
@@ -197,8 +208,8 @@ def _common_options(f):
 def object_command(take: Path | None, frame: int | None, images_dir: Path | None, masks_arg: str | None,
                    test_cameras: str, iterations: int, points: int, surfels: bool, cameras_path: Path,
                    only_cameras: str, scale: float, crop_margin: int, sh_degree: int, background: str,
-                   empty: Path | None, lpips_weights: Path | None, lpips_net: str, seed: int, threads: int,
-                   output: Path, force: bool, workers: int, scheduler: str | None) -> None:
+                   empty: Path | None, lpips_weights: Path | None, lpips_loss: float, lpips_net: str, seed: int,
+                   threads: int, output: Path, force: bool, workers: int, scheduler: str | None) -> None:
     """Fit static Gaussians to the calibrated views of an object; print held-out PSNR/SSIM."""
     if (take is None) == (images_dir is None):
         raise click.UsageError("give exactly one of --take and --images")
@@ -229,9 +240,9 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
 
     # surfels need masks to find the surface
     make_config = ObjectConfig.surfels if surfels and views.masks is not None else ObjectConfig.fast
-    cfg = make_config(iterations, sh_degree=sh_degree, init_points=points, background=bg,
-                      lpips_weights=None if lpips_weights is None else str(lpips_weights), lpips_net=lpips_net,
-                      seed=seed)
+    cfg = _with_lpips_loss(make_config(iterations, sh_degree=sh_degree, init_points=points, background=bg,
+                                       lpips_weights=None if lpips_weights is None else str(lpips_weights),
+                                       lpips_net=lpips_net, seed=seed), lpips_loss)
     start = time.perf_counter()
     task = ObjectTraining(crop_views(views.subset(train_idx), crop_margin), cfg, threads)
     with Bars() as bars:
@@ -277,8 +288,8 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
 def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None, truth: bool, frames_arg: str,
                  poses: int, test_frames: str, masks_arg: str | None, iterations: int, init: str, per_bone: int,
                  cameras_path: Path, only_cameras: str, scale: float, crop_margin: int, sh_degree: int,
-                 background: str, empty: Path | None, lpips_weights: Path | None, lpips_net: str, seed: int,
-                 threads: int, output: Path, force: bool, workers: int, scheduler: str | None) -> None:
+                 background: str, empty: Path | None, lpips_weights: Path | None, lpips_loss: float, lpips_net: str,
+                 seed: int, threads: int, output: Path, force: bool, workers: int, scheduler: str | None) -> None:
     """Fit a MANUS-Hand model (articulated Gaussians) to a hand take; print held-out PSNR/SSIM."""
     if truth == (dataset_path is not None):
         raise click.UsageError("give exactly one of --dataset and --truth")
@@ -316,6 +327,7 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     else:
         model = HandGaussians.initialize(hand.bone_lengths, per_bone=per_bone, sh_degree=sh_degree, seed=seed)
         cfg = HandConfig.fast(iterations, **settings)
+    cfg = _with_lpips_loss(cfg, lpips_loss)
     start = time.perf_counter()
     task = HandTraining(model, angles[train_rows], [crop_views(views[i], crop_margin) for i in train_rows], cfg,
                         threads)
@@ -332,7 +344,8 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     summary = f"{output}: {len(model)} Gaussians from {n_poses} poses ({n_views} views), {elapsed:.0f} s"
     test_rows = [i for i in range(len(frames)) if i not in train_rows]
     if test_rows:
-        scores = evaluate_hand(model, angles[test_rows], [views[i] for i in test_rows], bg, cfg.eps2d)
+        scores = evaluate_hand(model, angles[test_rows], [views[i] for i in test_rows], bg, cfg.eps2d,
+                               _lpips(lpips_weights, lpips_net))
         summary += f"; {len(test_rows)} held-out poses: " + (
             _scores_text(scores) if scores else "no view of them to score (none with the hand in its mask)")
     click.echo(summary)

@@ -32,12 +32,12 @@ from manus_core.progress import Progress, silent
 from manus_core.skeleton import BONES, HandSkeleton
 
 from .gaussians import Gaussians
-from .losses import LossWeights, image_loss, load_lpips
+from .losses import LPIPS, LossWeights, image_loss, training_lpips
 from .optimize import Densification, LearningRates, Strategy, decay_means_lr, make_optimizers, optimize_step
 from .rasterize import EPS2D, rasterize
 from .sh import eval_sh
 from .strategy import DensifyStrategy
-from .trainer import Views, add_scores, surfel_settings
+from .trainer import FAST_LOSS, Views, add_scores, surfel_settings
 
 N_BONES = 20
 
@@ -275,9 +275,10 @@ class HandConfig:
     @classmethod
     def fast(cls, iterations: int = 400, **changes) -> "HandConfig":
         """Settings for short CPU runs on capture takes (see ObjectConfig.fast): the initial
-        Gaussians only, the initial skinning weights, SH degree 1, faster colour and scale steps."""
+        Gaussians only, the initial skinning weights, SH degree 1, faster colour and scale steps,
+        no LPIPS term (FAST_LOSS)."""
         base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), densify=None,
-                    skin_lr=0.0, lr=LearningRates(sh0=1e-2, scales=1e-2))
+                    skin_lr=0.0, lr=LearningRates(sh0=1e-2, scales=1e-2), weights=FAST_LOSS)
         return cls(**{**base, **changes})
 
     @classmethod
@@ -299,7 +300,8 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
     bg = torch.tensor(cfg.background, dtype=torch.float32, device=model.gaussians.means.device)
     targets = [v.targets(bg) for v in views]
     scene_scale = float(model.skeleton.bone_lengths.sum() / 5)  # about one finger's length
-    lpips = load_lpips(cfg.lpips_weights, cfg.lpips_net) if cfg.weights.lpips > 0 else None
+    lpips = training_lpips(cfg.weights.lpips, cfg.lpips_weights, cfg.lpips_net,
+                           min((min(v.width, v.height) for v in views if len(v)), default=0), bg.device)
     # skin_lr = 0 keeps the initial weights (and saves the Adam update of the whole grid).
     model.skin_grid.requires_grad_(cfg.skin_lr > 0)
     gaussian_optimizers = make_optimizers(model.gaussians, cfg.lr, scene_scale)
@@ -336,16 +338,17 @@ def train_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views], co
 
 @torch.no_grad()
 def evaluate_hand(model: HandGaussians, poses: torch.Tensor, views: list[Views],
-                  background=(0.0, 0.0, 0.0), eps2d: float = EPS2D) -> dict[str, float]:
-    """Mean PSNR (dB), SSIM and, with masks, psnr_mask (see trainer.evaluate) over every view of
-    every given pose, rendered with the splat blur `eps2d` the model was trained with."""
+                  background=(0.0, 0.0, 0.0), eps2d: float = EPS2D, lpips: LPIPS | None = None) -> dict[str, float]:
+    """Mean PSNR (dB), SSIM, with masks psnr_mask and with an LPIPS module LPIPS (see
+    trainer.evaluate) over every view of every given pose, rendered with the splat blur `eps2d`
+    the model was trained with."""
     bg = torch.tensor(background, dtype=torch.float32, device=model.gaussians.means.device)
-    scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_mask": []}
+    scores: dict[str, list[float]] = {"psnr": [], "ssim": [], "psnr_mask": [], "lpips": []}
     for p, view in enumerate(views):
         if not len(view):
             continue
         rgb, alpha = model.render(poses[p], view.viewmats, view.Ks, view.width, view.height, bg, eps2d=eps2d)
-        add_scores(scores, view.composite(rgb, alpha, bg), view, bg)
+        add_scores(scores, view.composite(rgb, alpha, bg), view, bg, lpips)
     return {k: sum(v) / len(v) for k, v in scores.items() if v}
 
 

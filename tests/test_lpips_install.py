@@ -19,6 +19,7 @@ from dataset_tools.keypoints.install import bundle_dir, installed_manifest
 from manus_capture.cli import cli
 from manus_capture.splat.losses import LPIPS_WEIGHTS_FILE, installed_lpips, load_lpips, training_lpips
 from manus_capture.splat.lpips_install import check, flax_arrays, flax_distance
+from manus_capture.splat.trainer import Views, add_scores
 from manus_core.errors import InstallError
 
 
@@ -105,6 +106,11 @@ def test_installed_weights_are_the_default_and_small_images_turn_the_loss_off(st
         warnings.simplefilter("error")
         assert training_lpips(0.0, None, "alex", 30) is None
         assert training_lpips(0.1, None, "alex", 31) is not None
+    # a metric of views too small for the network leaves them out instead of failing
+    scores = {"psnr": [], "ssim": [], "psnr_mask": [], "lpips": []}
+    views = Views.from_rig(torch.rand(1, 30, 40, 3), torch.eye(3)[None], np.eye(3)[None], np.zeros((1, 3)))
+    add_scores(scores, torch.rand(1, 30, 40, 3), views, torch.zeros(3), model)
+    assert scores["lpips"] == [] and len(scores["psnr"]) == 1
 
 
 def test_models_install_is_idempotent_and_lists_lpips(state):

@@ -147,6 +147,7 @@ class LPIPS(torch.nn.Module):
         self.scaling_layer.register_buffer("shift", torch.tensor([-0.030, -0.088, -0.188])[None, :, None, None])
         self.scaling_layer.register_buffer("scale", torch.tensor([0.458, 0.448, 0.450])[None, :, None, None])
         self.n_taps = len(taps)
+        self.min_size = LPIPS_MIN_SIZE[net]
         self.eval()
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

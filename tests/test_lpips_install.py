@@ -18,7 +18,7 @@ from safetensors.torch import load_file
 from dataset_tools.keypoints.install import bundle_dir, installed_manifest
 from manus_capture.cli import cli
 from manus_capture.splat.losses import LPIPS_WEIGHTS_FILE, installed_lpips, load_lpips, training_lpips
-from manus_capture.splat.lpips_install import SOURCE, pinned_file, check, flax_arrays, flax_distance
+from manus_capture.splat.lpips_install import SOURCE, check, flax_arrays, flax_distance, pinned_file
 from manus_capture.splat.trainer import Views, add_scores
 from manus_core.errors import InstallError
 

@@ -34,7 +34,7 @@ import torch
 from PIL import Image
 
 from manus_capture.splat import rasterize
-from manus_capture.splat.losses import LossWeights, installed_lpips, load_lpips
+from manus_capture.splat.losses import LossWeights, metric_lpips
 from manus_capture.splat.rasterize import gsplat_available
 from manus_capture.splat.reference import render_reference
 from manus_capture.splat.strategy import DensifyStrategy
@@ -83,7 +83,7 @@ def bench_lego(size: int, iterations: int, points: int, sh_degree: int, device: 
     t0 = time.perf_counter()
     result = train_object(views.subset(train), cfg)
     seconds = time.perf_counter() - t0
-    lpips = load_lpips(None) if installed_lpips() is not None else None
+    lpips = metric_lpips()
     scores = evaluate(result.gaussians, views.subset(test), background=(1.0, 1.0, 1.0),
                       lpips=None if lpips is None else lpips.to(device))
     train_scores = evaluate(result.gaussians, views.subset(train), background=(1.0, 1.0, 1.0))

@@ -18,7 +18,7 @@ from dataset_tools.annotate import take_key
 from dataset_tools.segmentation.takes import segment_take
 from manus_capture.splat.gaussians import Gaussians
 from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
-from manus_capture.splat.losses import installed_lpips, load_lpips
+from manus_capture.splat.losses import metric_lpips
 from manus_capture.splat.optimize import LearningRates
 from manus_capture.splat.takes import (
     HandFrames,
@@ -198,7 +198,7 @@ class ModelInputs:
             # (silhouette pixels then keep the wall's share against the model's black)
             plain = [dataclasses.replace(v, backgrounds=None) for v in test_views]
             # LPIPS as the MANUS paper's table gives it, when its network is installed
-            lpips = load_lpips(None) if installed_lpips() is not None else None
+            lpips = metric_lpips()
             hand_scores = evaluate_hand(hand, test_poses, test_views, eps2d=SURFACE_EPS2D, lpips=lpips)
             hand_black = evaluate_hand(hand, test_poses, plain, eps2d=SURFACE_EPS2D)
             object_scores = object_black = {"psnr": np.nan, "psnr_mask": np.nan, "ssim": np.nan}

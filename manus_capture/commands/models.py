@@ -6,10 +6,10 @@ from pathlib import Path
 
 import click
 
-from dataset_tools.keypoints.install import BUNDLES, bundle_dir, install, installed_manifest, list_models
+from dataset_tools.keypoints.install import BUNDLES, bundle_dir, install, list_models
 from dataset_tools.keypoints.quantize import quantize_landmarks
 from manus_capture.bars import Bars
-from manus_capture.splat.lpips_install import DESCRIPTIONS, NETWORKS, install_lpips
+from manus_capture.splat.lpips_install import NETWORKS, install_lpips, list_networks
 from manus_core.take import Take
 
 
@@ -67,10 +67,7 @@ def quantize_cmd(name: str, takes: tuple[Path, ...], crops: int, device: str) ->
 def list_cmd() -> None:
     """List the installable models and whether they are installed."""
 
-    rows = list_models() + [{"name": name, "description": DESCRIPTIONS[name],
-                             "installed": installed_manifest(name) is not None, "path": str(bundle_dir(name)),
-                             "files": sorted((installed_manifest(name) or {"files": {}})["files"])}
-                            for name in NETWORKS]
+    rows = list_models() + list_networks()
     for row in rows:
         state = "installed" if row["installed"] else "not installed"
         click.echo(f"{row['name']:<16} {state:<14} {row['description']}")

@@ -27,7 +27,7 @@ from manus_capture.bars import Bars
 from manus_capture.builder import surface_hand, surface_hand_config
 from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
 from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand
-from manus_capture.splat.losses import installed_lpips, load_lpips
+from manus_capture.splat.losses import metric_lpips
 from manus_capture.splat.rasterize import EPS2D
 from manus_capture.splat.takes import (
     crop_views,
@@ -121,11 +121,6 @@ def _with_results(rig, take: Path, *having: tuple[str, list[str]]):
 def _check_output(output: Path, force: bool) -> None:
     if output.exists() and not force:
         raise ReconstructInputError(f"{output}: exists (use --force to overwrite)")
-
-
-def _lpips(weights: Path | None, net: str):
-    """The LPIPS metric: the given weights, else the installed ones, else none (not scored)."""
-    return None if weights is None and installed_lpips(net) is None else load_lpips(weights, net)
 
 
 def _with_lpips_loss(cfg, weight: float):
@@ -256,7 +251,7 @@ def object_command(take: Path | None, frame: int | None, images_dir: Path | None
     summary = f"{output}: {len(gaussians)} Gaussians from {len(train_idx)} views, {elapsed:.0f} s"
     if test_idx:
         summary += "; " + _scores_text(evaluate(gaussians, views.subset(test_idx), bg,
-                                                _lpips(lpips_weights, lpips_net), cfg.eps2d))
+                                                metric_lpips(lpips_weights, lpips_net), cfg.eps2d))
     click.echo(summary)
 
 
@@ -345,7 +340,7 @@ def hand_command(take: Path, dataset_path: Path | None, dataset_take: str | None
     test_rows = [i for i in range(len(frames)) if i not in train_rows]
     if test_rows:
         scores = evaluate_hand(model, angles[test_rows], [views[i] for i in test_rows], bg, cfg.eps2d,
-                               _lpips(lpips_weights, lpips_net))
+                               metric_lpips(lpips_weights, lpips_net))
         summary += f"; {len(test_rows)} held-out poses: " + (
             _scores_text(scores) if scores else "no view of them to score (none with the hand in its mask)")
     click.echo(summary)

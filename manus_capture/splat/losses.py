@@ -209,6 +209,12 @@ def load_lpips(weights: str | Path | None, net: str = "alex") -> LPIPS | None:
     return model.requires_grad_(False)
 
 
+def metric_lpips(weights: str | Path | None = None, net: str = "alex") -> LPIPS | None:
+    """LPIPS for scoring: the given weights, else the installed ones, else None (not scored, no
+    warning: the metric is optional where the loss is not)."""
+    return None if weights is None and installed_lpips(net) is None else load_lpips(weights, net)
+
+
 def training_lpips(weight: float, weights: str | Path | None, net: str, smallest: int,
                    device: torch.device | str = "cpu") -> LPIPS | None:
     """The LPIPS module of a trainer's loss: None when its weight is 0, and (with a warning) when

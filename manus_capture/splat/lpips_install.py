@@ -35,7 +35,7 @@ import torch
 from numpy.lib.stride_tricks import sliding_window_view
 from safetensors.torch import save_file
 
-from dataset_tools.keypoints.install import install_work, installed_manifest, pip_download, publish
+from dataset_tools.keypoints.install import bundle_dir, install_work, installed_manifest, pip_download, publish
 from manus_core.errors import InstallError
 from manus_core.progress import Progress, silent
 from manus_core.provenance import file_sha256
@@ -214,3 +214,13 @@ def install_lpips(name: str, force: bool = False, progress: Progress = silent) -
                     "check_abs_diff": difference, "installed": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         publish(staged, name, manifest)
         return True
+
+
+def list_networks() -> list[dict]:
+    """One row per LPIPS network, as keypoints.install.list_models gives them."""
+    rows = []
+    for name in NETWORKS:
+        manifest = installed_manifest(name)
+        rows.append({"name": name, "description": DESCRIPTIONS[name], "installed": manifest is not None,
+                     "path": str(bundle_dir(name)), "files": sorted(manifest["files"]) if manifest else []})
+    return rows

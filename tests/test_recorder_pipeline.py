@@ -10,7 +10,7 @@ import time
 
 import cv2
 import numpy as np
-from test_recorder import RawCamera
+from test_recorder_raw import RawCamera
 
 import rig.record.recorder as recorder_module
 from manus_core.take import Take

@@ -105,14 +105,23 @@ def test_foreground_in_blocks_is_the_per_pixel_mask(sim):
 def test_distance_in_a_window_is_exact_near_the_mask():
     """Carving reads a view's distance to its mask in a window around it: exact within
     DISTANCE_PAD of the mask's box, and a lower bound (from the distance to the box) beyond."""
-    from dataset_tools.segmentation.multiview import DISTANCE_PAD, _Distance
+    from dataset_tools.segmentation.multiview import DISTANCE_PAD, _Distances
 
     mask = np.zeros((300, 400), bool)
     cv2.ellipse(mask.view(np.uint8), (150, 120), (40, 25), 30, 0, 360, 1, -1)
     mask[200:203, 100:180] = True
     whole = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3)
     y, x = (a.ravel() for a in np.mgrid[:300, :400])
-    got = _Distance.of(mask).at(y, x)
+    # the second view's distances, at each pixel's centre (off by a third of a pixel: rounded)
+    masks = np.stack([np.zeros_like(mask), mask, mask])
+    uv = np.broadcast_to(np.stack([x, y], -1) + 0.3, (3, len(x), 2)).astype(float)
+    depth = np.ones((3, len(x)))
+    depth[2, ::2] = -1.0   # behind the third camera: not seen
+    distances = _Distances.of(masks, np.array([False, True, True])).at(uv, depth)
+    got = distances[0]
+    assert np.array_equal(distances[1, 1::2], got[1::2]) and np.all(np.isinf(distances[1, ::2]))
+    outside = _Distances.of(masks, np.array([False, True, False])).at(uv + [[[-1.0, 0.0]]], depth)[0]
+    assert np.isinf(outside[x == 0]).all() and np.isfinite(outside[x > 0]).all()   # column -1 is no pixel
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     near = ((y >= rows[0] - DISTANCE_PAD) & (y <= rows[-1] + DISTANCE_PAD)
             & (x >= cols[0] - DISTANCE_PAD) & (x <= cols[-1] + DISTANCE_PAD))
@@ -182,6 +191,31 @@ def test_refine_edges_unmixes_edge_pixels():
     first[:, 10:15] = 2                        # one column too few on the right
     refined = refine_edges(image.astype(np.float32), first, np.tile(bg, (12, 20, 1)), (1, 2))
     assert np.array_equal(refined, truth)
+
+
+def test_nearest_pure_pixels_within_reach_as_the_distance_transform_finds_them():
+    """Edge pixels take the colours of their class's nearest pure pixels within REACH: the same
+    distances as OpenCV's 5x5 distance transform there, a pure pixel at that distance, and none
+    (infinite) beyond."""
+    from dataset_tools.segmentation.edges import REACH, _pure_colours
+
+    rng = np.random.default_rng(4)
+    labels = (cv2.GaussianBlur(rng.random((60, 80)), (0, 0), 3) > 0.5).astype(np.uint8)
+    image = rng.uniform(0, 255, (60, 80, 3)).astype(np.float32)
+    ys, xs = (a.ravel() for a in np.mgrid[:60, :80])
+    colour, dist = _pure_colours(image, labels, 1, False, (ys, xs))
+    pure = cv2.erode(labels, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE) > 0
+    whole = cv2.distanceTransform((~pure).astype(np.uint8), cv2.DIST_L2, 5)[ys, xs]
+    near = whole <= REACH
+    assert near.any() and (~near).any()
+    assert np.allclose(dist[near], whole[near], atol=1e-4) and np.isinf(dist[~near]).all()
+    # each colour the mean of the pure pixels around one at that distance
+    weight = np.maximum(cv2.blur(pure.astype(np.float32), (3, 3)), 1e-6)
+    means = cv2.blur(image * pure[..., None], (3, 3)) / weight[..., None]
+    candidates = np.linalg.norm(colour[near][:, None] - means[pure][None], axis=-1) < 1e-3
+    py, px = np.nonzero(pure)
+    reach = np.hypot(ys[near][:, None] - py[None], xs[near][:, None] - px[None])
+    assert np.all((candidates & (np.abs(reach - dist[near][:, None]) < 0.25)).any(axis=1))
 
 
 def test_fill_and_remove():
@@ -394,6 +428,26 @@ def test_voxels_drawn_where_their_volume_projects():
         assert covered.sum() > 250
         assert not (covered & ~drawn[c]).any(), c
         assert iou(drawn[c], covered) >= 0.95, (c, iou(drawn[c], covered))
+
+
+def test_boxes_drawn_in_a_window_cover_the_pixel_centres_inside_them():
+    """A window's pixel is drawn when its centre lies in a box (edges included); boxes behind the
+    camera (NaN) or beyond the window draw nothing."""
+    from dataset_tools.segmentation.multiview import _draw_boxes
+
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([-20, -20], [140, 100], (300, 2))
+    extent = rng.uniform(0, 6, (300, 2))
+    uv[::7] = np.nan
+    extent[3] = [2.0, 0.0]   # edges on pixel centres
+    uv[3] = [50.0, 40.0]
+    window = (slice(10, 90), slice(5, 125))
+    drawn = _draw_boxes(uv, extent, window)
+    y, x = np.mgrid[10:90, 5:125]
+    with np.errstate(invalid="ignore"):
+        inside = ((np.abs(x[..., None] - uv[:, 0]) <= extent[:, 0]) & (np.abs(y[..., None] - uv[:, 1]) <= extent[:, 1]))
+    assert drawn.shape == (80, 120) and np.array_equal(drawn, inside.any(axis=-1))
+    assert drawn[40 - 10, 48 - 5:53 - 5].all() and not drawn[40 - 10, 53 - 5]
 
 
 def test_mask_store_writes_the_tiles_around_each_mask(tmp_path):

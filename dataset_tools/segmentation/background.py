@@ -16,6 +16,8 @@ import numpy as np
 
 from manus_core.errors import SegmentationError
 
+from ..jit import jit
+
 # The MAD of a few JPEG frames underestimates the noise of a new frame: a floor in grey levels.
 NOISE_FLOOR = 2.5
 # Colour differences this many noise sigmas above the background count as foreground.
@@ -124,10 +126,8 @@ class BackgroundModel:
 
     def _score2(self, image: np.ndarray, inverse_gain: float, window: tuple[slice, slice]) -> np.ndarray:
         """The squared difference (h,w) float32 in noise sigmas over `window` of the image."""
-        median = self.median[window]
-        diff = np.asarray(image[window], np.float32) * np.float32(inverse_gain) - median
-        scale2 = self.sigma[window][..., None] ** 2 + (RELATIVE_TOLERANCE * median) ** 2
-        return channel_sum(diff * diff / scale2) * np.float32(1 / 3)
+        return _score2_kernel(image[window], self.median[window], self.sigma[window], np.float32(inverse_gain),
+                              np.float32(RELATIVE_TOLERANCE))
 
     def _windows(self, image: np.ndarray, inverse_gain: float, threshold: float,
                  block: int) -> list[tuple[slice, slice]]:
@@ -159,6 +159,29 @@ class BackgroundModel:
             cache[block] = BackgroundModel(cv2.resize(self.median, size, interpolation=cv2.INTER_AREA),
                                            cv2.resize(self.sigma, size, interpolation=cv2.INTER_AREA))
         return cache[block]
+
+
+@jit
+def _score2_kernel(image: np.ndarray, median: np.ndarray, sigma: np.ndarray, inverse_gain: np.float32,
+                   tolerance: np.float32) -> np.ndarray:
+    """Each pixel's squared colour difference to the background in noise sigmas, the mean over its
+    channels: ((image * inverse_gain - median) ** 2 / (sigma ** 2 + (tolerance * median) ** 2)).
+    One pass without temporaries: the same in numpy made nine passes over a window's floats and
+    was a third of the foreground's time."""
+    h, w = sigma.shape
+    out = np.empty((h, w), np.float32)
+    third = np.float32(1 / 3)
+    for y in range(h):
+        for x in range(w):
+            noise2 = sigma[y, x] * sigma[y, x]
+            total = np.float32(0)
+            for c in range(3):
+                m = median[y, x, c]
+                d = np.float32(image[y, x, c]) * inverse_gain - m
+                relative = tolerance * m
+                total += d * d / (noise2 + relative * relative)
+            out[y, x] = total * third
+    return out
 
 
 def median_of_frames(frames: np.ndarray) -> np.ndarray:
@@ -238,6 +261,14 @@ def remove_small(mask: np.ndarray, min_area: int) -> np.ndarray:
 
 def fill_holes(mask: np.ndarray, max_area: int | None = None) -> np.ndarray:
     """The mask with its enclosed holes (up to max_area pixels) filled."""
+    if max_area is None:
+        # every hole: what a flood of the background from a border around the mask does not
+        # reach (a third of the labelling's time, which also measures every component)
+        h, w = mask.shape
+        outside = np.zeros((h + 2, w + 2), np.uint8)
+        outside[1:-1, 1:-1] = mask
+        cv2.floodFill(outside, None, (0, 0), 2, flags=4)
+        return outside[1:-1, 1:-1] != 2
     inverse = (~mask).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(inverse, connectivity=4)
     h, w = mask.shape

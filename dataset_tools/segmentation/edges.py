@@ -15,6 +15,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..jit import jit
+
 # How far (px) from a class's pure pixels a mixed pixel may take that class's colour.
 REACH = 3.0
 # Colours are compared in YCrCb with the chroma down-weighted: frames stored 4:2:0 keep chroma at half
@@ -52,18 +54,80 @@ def _pure_colours(image: np.ndarray, labels: np.ndarray, k: int, thin: bool, at:
         pure = own
     elif thin:
         pure |= own & (cv2.distanceTransform((~pure).astype(np.uint8), cv2.DIST_L2, 3) > 2)
-    dist, idx = cv2.distanceTransformWithLabels((~pure).astype(np.uint8), cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
-    # idx numbers the zero (pure) pixels in row-major order, from 1
-    flat = np.flatnonzero(pure)
-    ny, nx = np.divmod(flat[np.clip(idx[at] - 1, 0, len(flat) - 1)], pure.shape[1])
-    mask = pure.astype(np.uint8)
-    weight = cv2.blur(mask.astype(np.float32), (3, 3))[ny, nx]
-    # the pure pixels' colours, others zero: OpenCV's masked copy (a product with the mask converted it
-    # to floats and multiplied every channel)
-    pure_image = cv2.copyTo(image, mask, np.zeros_like(image))
-    mean = cv2.blur(pure_image, (3, 3))[ny, nx] / np.maximum(weight, 1e-6)[:, None]
-    return mean, dist[at]
+    ny, nx, dist = _nearest_pure(pure, at[0].astype(np.int64), at[1].astype(np.int64), _OFFSETS, _OFFSET_DISTANCES)
+    return _window_means(image, pure, ny, nx), dist
+
+
+def _chamfer_offsets(reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The offsets (K,2) (rows, columns) within `reach` of a pixel in OpenCV's 5x5 chamfer
+    distance (DIST_L2 with mask 5: steps 1, 1.4 and 2.1969), nearest first, and their distances
+    (K,) float32 as its distance transform sums them."""
+    n = int(np.ceil(reach)) + 1
+    steps = [(dy, dx, np.float32(w)) for dy, dx, w in
+             [(0, 1, 1.0), (1, 1, 1.4), (1, 2, 2.1969)] for dy, dx in
+             {(sy * a, sx * b) for a, b in ((dy, dx), (dx, dy)) for sy in (-1, 1) for sx in (-1, 1)}]
+    best = {(0, 0): np.float32(0)}
+    frontier = [(0, 0)]
+    while frontier:   # shortest paths over the steps (the grid is a few pixels across)
+        grown = []
+        for y, x in frontier:
+            for dy, dx, w in steps:
+                q, d = (y + dy, x + dx), best[y, x] + w
+                if max(abs(q[0]), abs(q[1])) <= n and d < best.get(q, np.float32(np.inf)):
+                    best[q] = d
+                    grown.append(q)
+        frontier = grown
+    kept = sorted((d, q) for q, d in best.items() if d <= reach)
+    return (np.array([q for _, q in kept], np.int64).reshape(-1, 2),
+            np.array([d for d, _ in kept], np.float32))
+
+
+# (pixels further than REACH from a class's pure pixels may not take its colour: only those are looked for)
+_OFFSETS, _OFFSET_DISTANCES = _chamfer_offsets(REACH)
+
+
+@jit
+def _nearest_pure(pure: np.ndarray, ys: np.ndarray, xs: np.ndarray, offsets: np.ndarray,
+                  distances: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pixel's (ys, xs) nearest pure pixel among `offsets` (nearest first) and its distance;
+    none there: the pixel itself at an infinite distance. (OpenCV's distance transform with labels
+    of the whole window, for the few pixels of its edges, was a fifth of refine_edges' time.)"""
+    h, w = pure.shape
+    ny, nx = ys.copy(), xs.copy()
+    dist = np.full(len(ys), np.inf, np.float32)
+    for i in range(len(ys)):
+        for k in range(len(offsets)):
+            y, x = ys[i] + offsets[k, 0], xs[i] + offsets[k, 1]
+            if 0 <= y < h and 0 <= x < w and pure[y, x]:
+                ny[i], nx[i], dist[i] = y, x, distances[k]
+                break
+    return ny, nx, dist
+
+
+@jit
+def _window_means(image: np.ndarray, pure: np.ndarray, ny: np.ndarray, nx: np.ndarray) -> np.ndarray:
+    """(N,3) the mean colour of the pure pixels in the 3x3 window around each (ny, nx), itself a
+    pure pixel; an image edge mirrored as OpenCV's box filter does (BORDER_REFLECT_101). Two box
+    filters of the whole window, for the few pixels of the edges, were half of _pure_colours' time."""
+    h, w = pure.shape
+    out = np.zeros((len(ny), 3), np.float32)
+    for i in range(len(ny)):
+        if not pure[ny[i], nx[i]]:   # (no pure pixel near: a colour that no pair may use)
+            continue
+        count = np.float32(0)
+        for dy in range(-1, 2):
+            y = abs(ny[i] + dy)
+            y = max(2 * (h - 1) - y, 0) if y > h - 1 else y
+            for dx in range(-1, 2):
+                x = abs(nx[i] + dx)
+                x = max(2 * (w - 1) - x, 0) if x > w - 1 else x
+                if pure[y, x]:
+                    count += 1
+                    for c in range(3):
+                        out[i, c] += image[y, x, c]
+        for c in range(3):
+            out[i, c] /= count
+    return out
 
 
 def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray | None,
@@ -91,7 +155,6 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
     ys, xs = np.nonzero(edge)
     if not len(ys):
         return labels.copy()
-    pixel = image[ys, xs]
     ends, names = [], []
     if background is not None:
         ends.append(_ycc(np.asarray(background, np.float32)[ys, xs][None])[0])
@@ -110,36 +173,50 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
         near.append(close)
     reachable = np.stack(([np.ones(len(ys), bool)] if background is not None else []) + near)
     # every pair of ends, each at every shade: each pixel's distance to the segment between the two
-    # colours, (K, N) for K pairs. A class with itself is one pair, its brightest shade to its
-    # darkest: the shades lie on one line through black, so that segment holds every pixel between
-    # two of them, and either end names the class. Colours are (3, N), a channel a row, so that the
-    # products run over contiguous rows (over (N, 3) they strode through every pixel's three values)
-    shaded = [[np.ascontiguousarray(e.T) * np.float32(f) for f in (SHADES if n else (1.0,))]
-              for e, n in zip(ends, names)]
+    # colours. A class with itself is one pair, its brightest shade to its darkest: the shades lie on
+    # one line through black, so that segment holds every pixel between two of them, and either end
+    # names the class. (i, j, shade of i, shade of j) a pair, the first to explain a pixel best wins
+    shades = [SHADES if n else (1.0,) for n in names]
     pairs = []
     for i in range(len(ends)):
-        pairs.append((i, i, shaded[i][0], shaded[i][-1]))
-        pairs += [(i, j, x, y) for j in range(i + 1, len(ends)) for x in shaded[i] for y in shaded[j]]
-    first = np.array([names[i] for i, _, _, _ in pairs])
-    second = np.array([names[j] for _, j, _, _ in pairs])
-    px = np.ascontiguousarray(pixel.T)
-    a = np.empty((len(pairs), len(ys)), np.float32)
-    residual = np.empty_like(a)
-    for k, (i, j, end, begin) in enumerate(pairs):
-        axis = end - begin
-        offset = px - begin
-        length2 = np.maximum(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2], 1e-6)
-        t = np.clip((offset[0] * axis[0] + offset[1] * axis[1] + offset[2] * axis[2]) / length2, 0.0, 1.0)
-        offset -= t * axis
-        a[k] = t
-        residual[k] = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]
-        residual[k, ~(reachable[i] & reachable[j])] = np.inf
-    # the first pair that explains the pixel best; a pixel no pair may explain keeps its label
-    best = np.argmin(residual, axis=0)
-    column = np.arange(len(ys))
-    explained = np.isfinite(residual[best, column])
-    out_label = labels[ys, xs].copy()
-    out_label[explained] = np.where(a[best, column] > 0.5, first[best], second[best])[explained]
+        pairs.append((i, i, shades[i][0], shades[i][-1]))
+        pairs += [(i, j, x, y) for j in range(i + 1, len(ends)) for x in shades[i] for y in shades[j]]
+    table = np.array(pairs, np.float64)
     out = labels.copy()
-    out[ys, xs] = out_label
+    _unmix(image, np.stack(ends), reachable, ys.astype(np.int64), xs.astype(np.int64), table[:, :2].astype(np.int64),
+           table[:, 2:].astype(np.float32), np.asarray(names, out.dtype), out)
     return out
+
+
+@jit
+def _unmix(image: np.ndarray, ends: np.ndarray, reachable: np.ndarray, ys: np.ndarray, xs: np.ndarray,
+           pairs: np.ndarray, shades: np.ndarray, names: np.ndarray, out: np.ndarray) -> None:
+    """refine_edges' decision at each pixel (ys, xs) of the image: of the pairs (i, j) of ends
+    (E,N,3) at their shades, both reachable from the pixel, the first whose segment lies nearest
+    the pixel's colour names it, by the end that makes up more than half of it (out[y, x] = that
+    end's name); a pixel no pair may explain keeps its label. (In numpy, (pairs, N) arrays of every
+    product took a third of refine_edges' time.)"""
+    tiny = np.float32(1e-6)
+    zero, one, half = np.float32(0), np.float32(1), np.float32(0.5)
+    for n in range(len(ys)):
+        y, x = ys[n], xs[n]
+        p0, p1, p2 = image[y, x, 0], image[y, x, 1], image[y, x, 2]
+        best = np.float32(np.inf)
+        label = -1
+        for k in range(len(pairs)):
+            i, j = pairs[k, 0], pairs[k, 1]
+            if not (reachable[i, n] and reachable[j, n]):
+                continue
+            f, g = shades[k, 0], shades[k, 1]
+            b0, b1, b2 = ends[j, n, 0] * g, ends[j, n, 1] * g, ends[j, n, 2] * g
+            a0, a1, a2 = ends[i, n, 0] * f - b0, ends[i, n, 1] * f - b1, ends[i, n, 2] * f - b2
+            o0, o1, o2 = p0 - b0, p1 - b1, p2 - b2
+            length2 = max(a0 * a0 + a1 * a1 + a2 * a2, tiny)
+            t = min(max((o0 * a0 + o1 * a1 + o2 * a2) / length2, zero), one)
+            o0, o1, o2 = o0 - t * a0, o1 - t * a1, o2 - t * a2
+            residual = o0 * o0 + o1 * o1 + o2 * o2
+            if residual < best:
+                best = residual
+                label = names[i] if t > half else names[j]
+        if label >= 0:
+            out[y, x] = label

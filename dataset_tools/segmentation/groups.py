@@ -113,19 +113,19 @@ def segment_groups(take: Take, rig: CameraRig, backgrounds: list, model, frame_i
     # one sequential pass over each camera's video: a group's frames come later in every video
     # than the previous group's (reading each frame from the start made the cost grow with the
     # square of the take's length)
-    streams = [take.stream_frames(cam, frame_index[:, c]) for c, cam in enumerate(rig.ids)]
-    current = [(-1, None)] * len(rig)
-    # one buffer for every group: a view not captured has no background and its pixels are not read
+    # one buffer for every group, each camera's frames decoded into its view: a view not captured
+    # has no background and its pixels are not read
     images = np.zeros((len(rig), h, w, 3), np.uint8)
+    streams = [take.stream_frames(cam, frame_index[:, c], out=images[c]) for c, cam in enumerate(rig.ids)]
+    current = [-1] * len(rig)
     for t in range(len(frame_index)):
         present = frame_index[t] >= 0
         for c in np.flatnonzero(present):
-            while current[c][0] < frame_index[t, c]:
-                current[c] = next(streams[c])
-            if current[c][0] != frame_index[t, c]:
+            while current[c] < frame_index[t, c]:
+                current[c] = next(streams[c])[0]
+            if current[c] != frame_index[t, c]:
                 raise SegmentationError(f"{take.path}: camera {rig.ids[c]}: frame groups out of time order "
-                                        f"(frame {frame_index[t, c]} after {current[c][0]})")
-            images[c] = current[c][1]
+                                        f"(frame {frame_index[t, c]} after {current[c]})")
         bgs = [b if p else None for b, p in zip(backgrounds, present)]
         hand, obj, report = hand_object_masks(images, bgs, rig, model)
         if object_take:

@@ -22,6 +22,7 @@ import numpy as np
 from manus_core.cameras import CameraRig
 from manus_core.errors import SegmentationError
 
+from ..jit import jit
 from .background import bounding_window, fill_holes
 
 # The distance to a view's mask is computed in a window this many px around it and bounded
@@ -79,33 +80,76 @@ class _Distance:
         window = bounding_window(mask, DISTANCE_PAD)
         return cls(window, box, cv2.distanceTransform((~mask[window]).astype(np.uint8), cv2.DIST_L2, 3))
 
-    def at(self, y: np.ndarray, x: np.ndarray) -> np.ndarray:
-        (r, c), (br, bc) = self.window, self.box
-        dy = np.maximum(np.maximum(br.start - y, y - (br.stop - 1)), 0)
-        dx = np.maximum(np.maximum(bc.start - x, x - (bc.stop - 1)), 0)
-        out = np.sqrt((dx * dx + dy * dy).astype(np.float32)) * np.float32(CHAMFER_AXIS)
-        near = (y >= r.start) & (y < r.stop) & (x >= c.start) & (x < c.stop)
-        out[near] = self.inside[y[near] - r.start, x[near] - c.start]
-        return out
+
+@dataclass(frozen=True)
+class _Distances:
+    """The distances of the views with a mask (`views`, their indices in the rig), as flat arrays
+    for _distance_kernel: each view's window and box as (row start, stop, column start, stop) and
+    its window's distances one view after another, each from its `offset`."""
+
+    views: np.ndarray      # (V,) int64
+    size: np.ndarray       # (V,2) int64: each view's image (width, height)
+    window: np.ndarray     # (V,4) int64
+    box: np.ndarray        # (V,4) int64
+    offset: np.ndarray     # (V,) int64
+    inside: np.ndarray     # (sum of the windows' areas,) float32
+
+    @classmethod
+    def of(cls, masks: np.ndarray, use: np.ndarray) -> "_Distances":
+        views = np.flatnonzero(use)
+        each = [_Distance.of(masks[c]) for c in views]
+        sizes = np.array([d.inside.size for d in each], np.int64)
+        return cls(views, np.array([masks[c].shape[::-1] for c in views], np.int64).reshape(-1, 2),
+                   np.array([_bounds(d.window) for d in each], np.int64).reshape(-1, 4),
+                   np.array([_bounds(d.box) for d in each], np.int64).reshape(-1, 4),
+                   np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64),
+                   np.concatenate([d.inside.ravel() for d in each] + [np.zeros(0, np.float32)]))
+
+    def at(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """(V,N) float32: each view's distance to its mask at the pixels uv (C,N,2) (rounded) of
+        points at `depth` (C,N) in the rig's views; inf where a point is not seen (behind the
+        camera, outside the image or NaN)."""
+        return _distance_kernel(uv, depth, self.views, self.size, self.window, self.box, self.offset, self.inside)
 
 
-def _votes(rig: CameraRig, masks: np.ndarray, dist: list, use: np.ndarray, points: np.ndarray,
-           half: float) -> tuple[np.ndarray, np.ndarray]:
-    """(seen, hit) counts per point over the views in `use`: seen when it projects into the image
+def _bounds(window: Window) -> tuple[int, int, int, int]:
+    return window[0].start, window[0].stop, window[1].start, window[1].stop
+
+
+@jit
+def _distance_kernel(uv: np.ndarray, depth: np.ndarray, views: np.ndarray, size: np.ndarray, window: np.ndarray,
+                     box: np.ndarray, offset: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """_Distances.at, one pass over the points a view: numpy's masks, gathers and bounds made it
+    two thirds of carving's time."""
+    out = np.full((len(views), uv.shape[1]), np.inf, np.float32)
+    axis = np.float32(CHAMFER_AXIS)
+    for v in range(len(views)):
+        c = views[v]
+        r0, r1, c0, c1 = window[v, 0], window[v, 1], window[v, 2], window[v, 3]
+        b0, b1, b2, b3 = box[v, 0], box[v, 1], box[v, 2], box[v, 3]
+        for i in range(uv.shape[1]):
+            fx, fy = np.rint(uv[c, i, 0]), np.rint(uv[c, i, 1])
+            if not (depth[c, i] > 1e-3 and fx >= 0 and fy >= 0 and fx < size[v, 0] and fy < size[v, 1]):
+                continue
+            x, y = int(fx), int(fy)
+            if r0 <= y < r1 and c0 <= x < c1:
+                out[v, i] = inside[offset[v] + (y - r0) * (c1 - c0) + (x - c0)]
+            else:
+                dy = max(b0 - y, y - (b1 - 1), 0)
+                dx = max(b2 - x, x - (b3 - 1), 0)
+                out[v, i] = np.sqrt(np.float32(dx * dx + dy * dy)) * axis
+    return out
+
+
+def _votes(rig: CameraRig, dist: _Distances, points: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """(seen, hit) counts per point over the views in `dist`: seen when it projects into the image
     in front of the camera, hit when a mask pixel lies within the voxel's projected radius."""
-    uv = np.rint(rig.project(points))
     depth = rig.R[:, 2] @ points.T + rig.t[:, 2, None]
-    seen = np.zeros(len(points), np.int32)
-    hit = np.zeros(len(points), np.int32)
-    for c in np.flatnonzero(use):
-        h, w = masks[c].shape
-        x, y = uv[c, :, 0], uv[c, :, 1]
-        # (NaN, behind the camera, compares False)
-        inside = np.flatnonzero((depth[c] > 1e-3) & (x >= 0) & (y >= 0) & (x < w) & (y < h))
-        radius = rig.K[c, 0, 0] * half * np.sqrt(3) / depth[c, inside] + 1.0
-        seen[inside] += 1
-        hit[inside[dist[c].at(y[inside].astype(np.intp), x[inside].astype(np.intp)) <= radius]] += 1
-    return seen, hit
+    distance = dist.at(rig.project(points), depth)
+    seen = np.isfinite(distance)
+    with np.errstate(divide="ignore"):
+        radius = rig.K[dist.views, 0, 0, None] * half * np.sqrt(3) / depth[dist.views] + 1.0
+    return seen.sum(axis=0), (seen & (distance <= radius)).sum(axis=0)
 
 
 def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, voxel: float = 0.005,
@@ -124,7 +168,7 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     use = masks.reshape(len(masks), -1).any(axis=1)
     if np.count_nonzero(use) < min_views:
         raise SegmentationError(f"carve: foreground in {np.count_nonzero(use)} views, need {min_views}")
-    dist = [_Distance.of(m) if u else None for m, u in zip(masks, use)]
+    dist = _Distances.of(masks, use)
     bounds = default_bounds(rig) if bounds is None else np.asarray(bounds, float)
     axes = [np.arange(lo + coarse / 2, hi, coarse) for lo, hi in bounds.T]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
@@ -132,7 +176,7 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     halves = np.stack(np.meshgrid(*[(-0.5, 0.5)] * 3, indexing="ij"), -1).reshape(-1, 3)
     size = coarse
     while True:
-        seen, hit = _votes(rig, masks, dist, use, points, size / 2)
+        seen, hit = _votes(rig, dist, points, size / 2)
         allowed = np.maximum(misses, np.floor(miss_fraction * seen)).astype(np.int32)
         points = points[(hit >= np.maximum(seen - allowed, min_views))]
         if size <= voxel * 1.001 or not len(points):
@@ -167,21 +211,31 @@ def _draw_boxes(uv: np.ndarray, extent: np.ndarray, window: Window) -> np.ndarra
     (N,2)): each box's corners marked in a difference image, then summed along both axes."""
     rows, cols = window
     h, w = rows.stop - rows.start, cols.stop - cols.start
-    # first and one past the last column and row of each box in the window (NaN: behind the camera)
-    x0 = np.clip(np.ceil(uv[:, 0] - extent[:, 0] - cols.start), 0, w)
-    x1 = np.clip(np.floor(uv[:, 0] + extent[:, 0] - cols.start) + 1, 0, w)
-    y0 = np.clip(np.ceil(uv[:, 1] - extent[:, 1] - rows.start), 0, h)
-    y1 = np.clip(np.floor(uv[:, 1] + extent[:, 1] - rows.start) + 1, 0, h)
-    with np.errstate(invalid="ignore"):
-        ok = (x0 < x1) & (y0 < y1)
-    x0, x1, y0, y1 = (v[ok].astype(np.int64) for v in (x0, x1, y0, y1))
-    stride = w + 1
-    y0 *= stride
-    y1 *= stride
-    corners = np.concatenate([y0 + x0, y0 + x1, y1 + x0, y1 + x1])
-    signs = np.repeat(np.array([1.0, -1.0, -1.0, 1.0]), len(x0))
-    diff = np.bincount(corners, signs, minlength=(h + 1) * stride).astype(np.float32).reshape(h + 1, stride)
+    diff = _box_corners(uv, extent, rows.start, cols.start, h, w)
     return cv2.integral(diff, sdepth=cv2.CV_32F)[1:h + 1, 1:w + 1] > 0.5
+
+
+@jit
+def _box_corners(uv: np.ndarray, extent: np.ndarray, top: int, left: int, h: int, w: int) -> np.ndarray:
+    """(h+1,w+1) float32: +1 at each box's first row and column in the window and at one past its
+    last row and column, -1 at the other two corners; a box behind the camera (NaN) or outside the
+    window marks nothing."""
+    diff = np.zeros((h + 1, w + 1), np.float32)
+    for i in range(uv.shape[0]):
+        x0 = np.ceil(uv[i, 0] - extent[i, 0] - left)
+        x1 = np.floor(uv[i, 0] + extent[i, 0] - left) + 1
+        y0 = np.ceil(uv[i, 1] - extent[i, 1] - top)
+        y1 = np.floor(uv[i, 1] + extent[i, 1] - top) + 1
+        if np.isnan(x0) or np.isnan(x1) or np.isnan(y0) or np.isnan(y1):
+            continue
+        a, b = int(min(max(x0, 0.0), w)), int(min(max(x1, 0.0), w))
+        c, d = int(min(max(y0, 0.0), h)), int(min(max(y1, 0.0), h))
+        if a < b and c < d:
+            diff[c, a] += 1
+            diff[c, b] -= 1
+            diff[d, a] -= 1
+            diff[d, b] += 1
+    return diff
 
 
 def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, int],

@@ -15,6 +15,7 @@ import numpy as np
 
 from manus_core.errors import CalibrationFileError
 from manus_core.fileio import write_atomic
+from manus_core.jit import jit
 
 PROJECT_BLOCK = 1 << 15  # (cameras x points) projected per block
 
@@ -23,6 +24,23 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=np.float64)
     a.setflags(write=False)
     return a
+
+
+@jit
+def _lens(x: np.ndarray, y: np.ndarray, dist: np.ndarray, K: np.ndarray, out: np.ndarray) -> None:
+    """out (C,N,2): normalized coordinates x, y (C,N) through each camera's lens distortion (k1, k2,
+    p1, p2, k3: OpenCV's model) and its K; NaN stays NaN. One pass without temporaries: in numpy
+    the polynomial's dozen whole-array passes were nine tenths of projecting a carving volume."""
+    for c in range(x.shape[0]):
+        k1, k2, p1, p2, k3 = dist[c, 0], dist[c, 1], dist[c, 2], dist[c, 3], dist[c, 4]
+        for i in range(x.shape[1]):
+            u, v = x[c, i], y[c, i]
+            r2 = u * u + v * v
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = u * radial + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
+            yd = v * radial + p1 * (r2 + 2 * v * v) + 2 * p2 * u * v
+            out[c, i, 0] = K[c, 0, 0] * xd + K[c, 0, 1] * yd + K[c, 0, 2]
+            out[c, i, 1] = K[c, 1, 1] * yd + K[c, 1, 2]
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,17 +106,13 @@ class CameraRig:
         out += self.t[:, :, None]
         return out.transpose(0, 2, 1)
 
-    def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        k1, k2, p1, p2, k3 = (self.dist[:, i, None] for i in range(5))
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return xd, yd
-
     def distort(self, xy: np.ndarray) -> np.ndarray:
         """Normalized undistorted coordinates (C,N,2) to normalized distorted ones (C,N,2)."""
-        return np.stack(self._distort(xy[..., 0], xy[..., 1]), axis=-1)
+        xy = np.asarray(xy, np.float64)
+        out = np.empty(xy.shape)
+        unit = np.tile(np.eye(3), (len(self.K), 1, 1))
+        _lens(np.ascontiguousarray(xy[..., 0]), np.ascontiguousarray(xy[..., 1]), self.dist, unit, out)
+        return out
 
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points (N,3) to distorted pixels (C,N,2); points behind a camera give NaN."""
@@ -112,10 +126,7 @@ class CameraRig:
             z = Xc[..., 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 inv = np.where(z > 0, 1.0 / z, np.nan)
-            xd, yd = self._distort(Xc[..., 0] * inv, Xc[..., 1] * inv)
-            block = out[:, start:start + step]
-            block[..., 0] = self.K[:, 0, 0, None] * xd + self.K[:, 0, 1, None] * yd + self.K[:, 0, 2, None]
-            block[..., 1] = self.K[:, 1, 1, None] * yd + self.K[:, 1, 2, None]
+            _lens(Xc[..., 0] * inv, Xc[..., 1] * inv, self.dist, self.K, out[:, start:start + step])
         return out
 
     def to_json(self) -> dict:

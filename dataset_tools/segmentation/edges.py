@@ -15,7 +15,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..jit import jit
+from manus_core.jit import jit
 
 # How far (px) from a class's pure pixels a mixed pixel may take that class's colour.
 REACH = 3.0

@@ -21,9 +21,9 @@ import numpy as np
 
 from manus_core.cameras import CameraRig
 from manus_core.errors import SegmentationError
+from manus_core.jit import jit
 
-from ..jit import jit
-from .background import bounding_window, fill_holes
+from .background import bounding_window, fill_holes, grow_window
 
 # The distance to a view's mask is computed in a window this many px around it and bounded
 # below by the distance to the mask's box beyond: exact for every voxel whose projected radius is
@@ -77,7 +77,7 @@ class _Distance:
     @classmethod
     def of(cls, mask: np.ndarray) -> "_Distance":
         box = bounding_window(mask, 0)
-        window = bounding_window(mask, DISTANCE_PAD)
+        window = grow_window(box, DISTANCE_PAD, mask.shape)
         return cls(window, box, cv2.distanceTransform((~mask[window]).astype(np.uint8), cv2.DIST_L2, 3))
 
 
@@ -322,7 +322,8 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
             filled.append(0)
             continue
         mask, proj = mask[window], proj[window]
-        kept = supported[c][parts[c]]
+        # (every part supported, as in most views: the mask itself, without a pass over the labels)
+        kept = mask if supported[c][1:].all() else supported[c][parts[c]]
         done = kept | (fill_holes(kept) & proj)
         out[c][window] = done
         dropped.append(int(np.count_nonzero(mask & ~kept)))

@@ -400,7 +400,7 @@ def fit_hand(joints3d: np.ndarray, bone_lengths: np.ndarray | None = None, *, co
     return angles, fitted, IKInfo(residual, iterations, converged, valid, observed)
 
 
-_BLOCK = 1024  # frames per batched solve: bounds the (frames, 21, 26, 3) Jacobians to ~100 MB
+_BLOCK = 256  # frames per batched solve: bounds the (frames, 21, 26, 3) Jacobians to ~25 MB
 
 
 def _solve_blocks(problem: _Problem, R0, t0, f0, max_iterations, tolerance):

@@ -213,8 +213,8 @@ class Take:
         one of them raises TakeError naming the file.
 
         out: an (H,W,3) uint8 C-contiguous array each frame is decoded into (and yielded as, so it
-        holds a frame until the next is asked for): a 1280x720 frame decoded into fresh memory
-        costs a fifth more than into memory already touched."""
+        holds a frame until the next is asked for), such as a frame group's buffer: no new memory
+        and no copy a frame; a frame of another size raises TakeError."""
         wanted = np.unique([int(k) for k in indices if k >= 0])
         path, i = self.video_path(cam), 0
         while i < len(wanted):
@@ -271,8 +271,9 @@ def _decode(packet: np.ndarray, path: Path, k: int, out: np.ndarray | None = Non
             raise TakeError(f"{path}: frame {k} is not a decodable JPEG ({packet.size} bytes)") from None
         if out is not None and image.shape == out.shape:
             out[...] = image
-            return out
-    if out is not None and image.shape != out.shape:
+    if out is None:
+        return image
+    if image.shape != out.shape:
         raise TakeError(f"{path}: frame {k} is {image.shape[1]}x{image.shape[0]}, "
                         f"the take's frames {out.shape[1]}x{out.shape[0]}")
-    return image
+    return out

@@ -166,3 +166,20 @@ def test_reading_a_take_in_frame_ranges_grows_linearly_with_its_length(tmp_path,
         cost[n] = headers[0], decoded[0]
     assert cost[150][1] == 150 and cost[300][1] == 300
     assert cost[300][0] <= 2.2 * cost[150][0], cost     # from frame 0 each time: 3.4x
+
+
+def test_frames_decoded_into_a_buffer_of_their_size_only():
+    """A stage decodes a camera's frames into its frame group's buffer: the same pixels as a frame
+    decoded on its own, and a frame of another size is refused naming the file and both sizes."""
+    from manus_core.errors import TakeError
+    from manus_core.take import _decode
+
+    image = cv2.GaussianBlur(np.random.default_rng(0).integers(0, 256, (48, 64, 3), np.uint8), (0, 0), 2)
+    packet = np.frombuffer(cv2.imencode(".jpg", image)[1].tobytes(), np.uint8)
+    alone = _decode(packet, Path("cam.mkv"), 3)
+    out = np.zeros((48, 64, 3), np.uint8)
+    assert _decode(packet, Path("cam.mkv"), 3, out) is out and np.array_equal(out, alone)
+    for shape in ((40, 64, 3), (60, 80, 3)):   # too small for the frame, and larger than it
+        with pytest.raises(TakeError, match=rf"cam.mkv: frame 3 is 64x48, the take's frames {shape[1]}x{shape[0]}"):
+            _decode(packet, Path("cam.mkv"), 3, np.zeros(shape, np.uint8))
+

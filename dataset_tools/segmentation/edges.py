@@ -63,9 +63,9 @@ def _chamfer_offsets(reach: float) -> tuple[np.ndarray, np.ndarray]:
     distance (DIST_L2 with mask 5: steps 1, 1.4 and 2.1969), nearest first, and their distances
     (K,) float32 as its distance transform sums them."""
     n = int(np.ceil(reach)) + 1
-    steps = [(dy, dx, np.float32(w)) for dy, dx, w in
-             [(0, 1, 1.0), (1, 1, 1.4), (1, 2, 2.1969)] for dy, dx in
-             {(sy * a, sx * b) for a, b in ((dy, dx), (dx, dy)) for sy in (-1, 1) for sx in (-1, 1)}]
+    # each step of the mask in its eight orientations (mirrored, swapped), with its length
+    steps = [(sy * a, sx * b, np.float32(length)) for u, v, length in ((0, 1, 1.0), (1, 1, 1.4), (1, 2, 2.1969))
+             for a, b in {(u, v), (v, u)} for sy in (-1, 1) for sx in (-1, 1)]
     best = {(0, 0): np.float32(0)}
     frontier = [(0, 0)]
     while frontier:   # shortest paths over the steps (the grid is a few pixels across)

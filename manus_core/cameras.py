@@ -118,8 +118,8 @@ class CameraRig:
         """World points (N,3) to distorted pixels (C,N,2); points behind a camera give NaN."""
         X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
         out = np.empty((len(self.R), len(X), 2))
-        # blocks of points small enough for the distortion's temporaries to stay in the CPU cache:
-        # whole-array temporaries of a carving volume made projection memory-bound
+        # blocks of points small enough for the camera coordinates' temporaries to stay in the CPU
+        # cache: whole-array temporaries of a carving volume made projection memory-bound
         step = max(1, PROJECT_BLOCK // max(len(self.R), 1))
         for start in range(0, len(X), step):
             Xc = self.to_camera(X[start:start + step])

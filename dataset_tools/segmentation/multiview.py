@@ -66,26 +66,12 @@ def pixels(rig: CameraRig, points: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class _Distance:
-    """A view's distance (px) to its mask: computed in `window` (the mask's box grown by
-    DISTANCE_PAD), and outside it a lower bound, CHAMFER_AXIS times the distance to the mask's box."""
-
-    window: Window
-    box: Window
-    inside: np.ndarray
-
-    @classmethod
-    def of(cls, mask: np.ndarray) -> "_Distance":
-        box = bounding_window(mask, 0)
-        window = grow_window(box, DISTANCE_PAD, mask.shape)
-        return cls(window, box, cv2.distanceTransform((~mask[window]).astype(np.uint8), cv2.DIST_L2, 3))
-
-
-@dataclass(frozen=True)
 class _Distances:
-    """The distances of the views with a mask (`views`, their indices in the rig), as flat arrays
-    for _distance_kernel: each view's window and box as (row start, stop, column start, stop) and
-    its window's distances one view after another, each from its `offset`."""
+    """Each view's distance (px) to its mask, for the views with one (`views`, their indices in the
+    rig): computed in a window (the mask's box grown by DISTANCE_PAD), and outside it a lower bound,
+    CHAMFER_AXIS times the distance to the mask's box. Flat arrays for _distance_kernel: each
+    view's window and box as (row start, stop, column start, stop), its window's distances one view
+    after another, each from its `offset`."""
 
     views: np.ndarray      # (V,) int64
     size: np.ndarray       # (V,2) int64: each view's image (width, height)
@@ -97,13 +83,16 @@ class _Distances:
     @classmethod
     def of(cls, masks: np.ndarray, use: np.ndarray) -> "_Distances":
         views = np.flatnonzero(use)
-        each = [_Distance.of(masks[c]) for c in views]
-        sizes = np.array([d.inside.size for d in each], np.int64)
+        boxes = [bounding_window(masks[c], 0) for c in views]
+        windows = [grow_window(box, DISTANCE_PAD, masks.shape[1:]) for box in boxes]
+        inside = [cv2.distanceTransform((~masks[c][w]).astype(np.uint8), cv2.DIST_L2, 3).ravel()
+                  for c, w in zip(views, windows)]
+        sizes = np.array([d.size for d in inside], np.int64)
         return cls(views, np.array([masks[c].shape[::-1] for c in views], np.int64).reshape(-1, 2),
-                   np.array([_bounds(d.window) for d in each], np.int64).reshape(-1, 4),
-                   np.array([_bounds(d.box) for d in each], np.int64).reshape(-1, 4),
+                   np.array([_bounds(w) for w in windows], np.int64).reshape(-1, 4),
+                   np.array([_bounds(b) for b in boxes], np.int64).reshape(-1, 4),
                    np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64),
-                   np.concatenate([d.inside.ravel() for d in each] + [np.zeros(0, np.float32)]))
+                   np.concatenate(inside + [np.zeros(0, np.float32)]))
 
     def at(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """(V,N) float32: each view's distance to its mask at the pixels uv (C,N,2) (rounded) of

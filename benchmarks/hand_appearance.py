@@ -28,14 +28,13 @@ import cv2
 import numpy as np
 import torch
 
-from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.builder import ModelInputs
 from manus_capture.pose_score import truth_at_groups
 from manus_capture.splat.hand import evaluate_hand
 from manus_capture.splat.takes import hand_views_from_take
 from manus_capture.splat.trainer import SURFACE_EPS2D
-from manus_core.dataset import read_dataset
+from manus_core.dataset import read_dataset, take_key
 
 BANDS = ((0.0, 1.5), (1.5, 2.5), (2.5, 4.0), (4.0, 7.0), (7.0, np.inf))   # px from the mask's edge
 INNER_PX = 2.5

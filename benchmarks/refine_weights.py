@@ -20,14 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.pose_score import pose_errors, truth_at_groups
 from manus_capture.refine import RefineOptions, fit_poses
 from manus_capture.refine_views import pose_views
 from manus_capture.splat.checkpoint import load_checkpoint
 from manus_capture.splat.hand import HandGaussians
-from manus_core.dataset import read_dataset
+from manus_core.dataset import read_dataset, take_key
 
 CANDIDATES = ("", "prior_deg=20,smooth_deg=2,keypoint_scale_px=3", "prior_deg=30,smooth_deg=2,keypoint_scale_px=4")
 

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from manus_core.cameras import CameraRig
-from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version
+from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, skeleton_description, software_version, take_key
 from manus_core.errors import AnnotateError, BoneLengthError
 from manus_core.progress import Progress, silent
 from manus_core.provenance import array_sha256, cameras_used, differences, file_sha256, provenance_attrs, stage_inputs
@@ -275,12 +275,6 @@ def annotate_take(task: TakeTask) -> TakeAnnotation:
 
 
 # --- running many takes ----------------------------------------------------------------------------
-
-def take_key(path: Path) -> str:
-    """The take's group in DATASET.h5: SESSION/TAKE (folder names)."""
-    path = Path(path).resolve()
-    return f"{path.parent.name}/{path.name}"
-
 
 def session_subject(session: Path) -> str | None:
     """The subject named by SESSION/session.toml (read by the session format's own reader, so a

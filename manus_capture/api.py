@@ -24,7 +24,7 @@ where each piece lives.
 
 from __future__ import annotations
 
-from dataset_tools.annotate import AnnotateOptions, AnnotateSummary, annotate, take_key
+from dataset_tools.annotate import AnnotateOptions, AnnotateSummary, annotate
 from dataset_tools.calibration.formats import load_cameras, save_cameras
 from dataset_tools.calibration.result import RigCalibration
 from dataset_tools.calibration.rig import calibrate_rig
@@ -44,7 +44,7 @@ from manus_capture.splat import rasterize
 from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
 from manus_capture.template import capsule_template
 from manus_core.cameras import CameraRig
-from manus_core.dataset import Dataset, TakeAnnotation, read_dataset
+from manus_core.dataset import Dataset, TakeAnnotation, read_dataset, take_key
 from manus_core.errors import InputError, ManusError
 from manus_core.progress import Progress, silent
 from manus_core.rig_config import RigConfig, load_rig

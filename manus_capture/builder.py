@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dataset_tools.annotate import take_key
 from dataset_tools.segmentation.takes import segment_take
 from manus_capture.splat.gaussians import Gaussians
 from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
@@ -34,6 +33,7 @@ from manus_capture.splat.trainer import SURFACE_EPS2D, SURFEL_THIN_M, ObjectConf
 from manus_capture.splat.trainer import evaluate as evaluate_object
 from manus_capture.template import SPACING_M, capsule_distances, capsule_surface, capsule_template, template_capsules
 from manus_core.cameras import CameraRig
+from manus_core.dataset import take_key
 from manus_core.errors import BuildError, TakeInputError
 from manus_core.skeleton import HandSkeleton
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dataset_tools.annotate import AnnotateOptions, annotate, take_key
+from dataset_tools.annotate import AnnotateOptions, annotate
 from dataset_tools.calibration.formats import load_cameras
 from dataset_tools.calibration.rig import calibrate_rig
 from dataset_tools.segmentation.takes import segment_take, write_masks
@@ -43,7 +43,7 @@ from manus_capture.splat.takes import truth_cameras
 from manus_capture.splat.trainer import SURFACE_EPS2D
 from manus_capture.surface_score import surface_errors
 from manus_capture.template import capsule_template
-from manus_core.dataset import read_dataset
+from manus_core.dataset import read_dataset, take_key
 from manus_core.errors import DemoError
 from manus_core.fileio import write_atomic
 from manus_core.ground_truth import GroundTruth

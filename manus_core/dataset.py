@@ -81,6 +81,12 @@ ANNOTATION_ATTRS = ("cameras", "kind", "take", "skeleton", "calibration", "calib
                     "cameras_left_out", "provenance_annotate")
 
 
+def take_key(path: Path) -> str:
+    """The take's group in DATASET.h5: SESSION/TAKE (folder names)."""
+    path = Path(path).resolve()
+    return f"{path.parent.name}/{path.name}"
+
+
 def software_version() -> str:
     try:
         return f"manus-capture {version('manus-capture')}"

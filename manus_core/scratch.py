@@ -9,6 +9,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+GZIP_LEVEL = 1   # of the files' arrays (ScratchArrays.array says why)
+
 
 class ScratchArrays:
     """Arrays by name: numpy arrays when `path` is None, else gzip datasets of an HDF5 file at
@@ -27,7 +29,8 @@ class ScratchArrays:
         add_arrays' 4, in less time)."""
         if self._file is None:
             return np.zeros(shape, dtype)
-        return self._file.create_dataset(name, shape, dtype, chunks=chunks, compression="gzip", compression_opts=1)
+        return self._file.create_dataset(name, shape, dtype, chunks=chunks, compression="gzip",
+                                         compression_opts=GZIP_LEVEL)
 
     def close(self, remove: bool = True) -> None:
         """Close the file (and remove it, by default: its arrays have been copied by then)."""

@@ -127,8 +127,8 @@ def test_segment_on_the_cluster_matches_a_local_run(grasp_session, cluster, tmp_
     import h5py
     from click.testing import CliRunner
 
-    from dataset_tools.annotate import take_key
     from manus_capture.cli import cli
+    from manus_core.dataset import take_key
 
     address, _ = cluster
     take = grasp_session / "S" / "grasp"

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from dataset_tools.annotate import take_key
 from dataset_tools.sync import frame_groups
 from manus_capture.cli import cli
 from manus_core.cameras import CameraRig
+from manus_core.dataset import take_key
 from manus_core.ground_truth import GroundTruth
 from manus_core.provenance import provenance_attrs
 from rig.layouts import make_rig

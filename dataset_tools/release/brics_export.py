@@ -30,13 +30,12 @@ import cv2
 import h5py
 import numpy as np
 
-from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from dataset_tools.calibration.formats.manus_optim_params import write_manus
 from dataset_tools.sync import frame_groups
 from dataset_tools.undistort import undistort_points
 from manus_core.cameras import CameraRig
-from manus_core.dataset import read_dataset
+from manus_core.dataset import read_dataset, take_key
 from manus_core.errors import ReleaseError
 from manus_core.progress import Progress, silent
 from manus_core.take import Take

@@ -18,14 +18,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from dataset_tools.annotate import filter_angles, take_key
+from dataset_tools.annotate import filter_angles
 from dataset_tools.calibration.formats.checks import unit_scale
 from dataset_tools.hand.bones import estimate_bone_lengths
 from dataset_tools.hand.ik import fit_hand
 from dataset_tools.keypoints.keypoints2d import CameraKeypoints, TakeKeypoints, write_keypoints_h5
 from dataset_tools.sync import RELEASE_METHOD, TakeGroups, save_groups
 from manus_core.cameras import CameraRig
-from manus_core.dataset import FLAGS, DatasetWriter, TakeAnnotation, add_arrays, skeleton_description, software_version
+from manus_core.dataset import (
+    FLAGS,
+    DatasetWriter,
+    TakeAnnotation,
+    add_arrays,
+    skeleton_description,
+    software_version,
+    take_key,
+)
 from manus_core.errors import BoneLengthError, ReleaseError
 from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
 from manus_core.frames_csv import frames_csv_digest

@@ -131,12 +131,13 @@ def _window_means(image: np.ndarray, pure: np.ndarray, ny: np.ndarray, nx: np.nd
 
 
 def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray | None,
-                 classes: tuple[int, ...], band: int = 1, thin: tuple[int, ...] = ()) -> np.ndarray:
+                 classes: tuple[int, ...], band: int = 1, thin: tuple[int, ...] = (), gain: float = 1.0) -> np.ndarray:
     """Labels (H,W) with the pixels within `band` px of an edge re-decided by unmixing.
 
-    image (H,W,3) and background (H,W,3) (the background's colour at the image's brightness; None
-    where there is no background to mix with, e.g. inside a hand mask) as float; labels (H,W) int
-    with 0 for the background and the given `classes`. A pixel of the band may go to any class
+    image (H,W,3) and background (H,W,3) (the background's colour at the image's brightness, or at
+    its own times `gain`, which is applied to the few pixels that need it; None where there is no
+    background to mix with, e.g. inside a hand mask) as float; labels (H,W) int with 0 for the
+    background and the given `classes`. A pixel of the band may go to any class
     whose pure pixels are within REACH of it; the classes in `thin` (found by a colour key) lend
     their thin parts' own colours (see _pure_colours), and their mean colour further away."""
     image = _ycc(np.asarray(image, np.float32))
@@ -146,18 +147,19 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
         return labels.copy()
     size = 2 * band + 1
     kernel = np.ones((size, size), np.uint8)
-    edge = np.zeros(labels.shape, bool)
-    for k in ([0] if background is not None else []) + present:
-        own = (labels == k).astype(np.uint8)
-        edge |= (cv2.dilate(own, kernel) > 0) & (cv2.erode(own, kernel, borderType=cv2.BORDER_REPLICATE) == 0)
+    # on an edge: a pixel whose neighbourhood is not all of one label, its largest and smallest
+    # label differ (one dilation and one erosion, where each label's own took two of each)
+    values = labels.astype(np.uint8, copy=False)
+    edge = cv2.dilate(values, kernel) != cv2.erode(values, kernel, borderType=cv2.BORDER_REPLICATE)
     if background is None:
         edge &= labels != 0
-    ys, xs = np.nonzero(edge)
+    # (np.nonzero of a 2-D mask takes four times as long)
+    ys, xs = np.divmod(np.flatnonzero(edge), edge.shape[1])
     if not len(ys):
         return labels.copy()
     ends, names = [], []
     if background is not None:
-        ends.append(_ycc(np.asarray(background, np.float32)[ys, xs][None])[0])
+        ends.append(_ycc(np.asarray(background, np.float32)[ys, xs][None] * np.float32(gain))[0])
         names.append(0)
     near = []
     for k in present:
@@ -183,40 +185,46 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
         pairs += [(i, j, x, y) for j in range(i + 1, len(ends)) for x in shades[i] for y in shades[j]]
     table = np.array(pairs, np.float64)
     out = labels.copy()
-    _unmix(image, np.stack(ends), reachable, ys.astype(np.int64), xs.astype(np.int64), table[:, :2].astype(np.int64),
+    ends = np.ascontiguousarray(np.stack(ends).transpose(0, 2, 1))   # (E,3,N): each channel's pixels in a row
+    _unmix(image, ys.astype(np.int64), xs.astype(np.int64), ends, reachable, table[:, :2].astype(np.int64),
            table[:, 2:].astype(np.float32), np.asarray(names, out.dtype), out)
     return out
 
 
 @jit
-def _unmix(image: np.ndarray, ends: np.ndarray, reachable: np.ndarray, ys: np.ndarray, xs: np.ndarray,
+def _unmix(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, ends: np.ndarray, reachable: np.ndarray,
            pairs: np.ndarray, shades: np.ndarray, names: np.ndarray, out: np.ndarray) -> None:
     """refine_edges' decision at each pixel (ys, xs) of the image: of the pairs (i, j) of ends
-    (E,N,3) at their shades, both reachable from the pixel, the first whose segment lies nearest
+    (E,3,N) at their shades, both reachable from the pixel, the first whose segment lies nearest
     the pixel's colour names it, by the end that makes up more than half of it (out[y, x] = that
-    end's name); a pixel no pair may explain keeps its label. (In numpy, (pairs, N) arrays of every
-    product took a third of refine_edges' time.)"""
+    end's name); a pixel no pair may explain keeps its label. Pair after pair over all the pixels:
+    the loop over the pixels runs in SIMD, six times as fast as each pixel's pairs in turn (and
+    numpy's (pairs, N) arrays of every product took a third of refine_edges' time)."""
+    count = len(ys)
+    pixel = np.empty((3, count), np.float32)
+    for n in range(count):
+        for c in range(3):
+            pixel[c, n] = image[ys[n], xs[n], c]
+    best = np.full(count, np.inf, np.float32)
+    label = np.full(count, -1, np.int64)
     tiny = np.float32(1e-6)
     zero, one, half = np.float32(0), np.float32(1), np.float32(0.5)
-    for n in range(len(ys)):
-        y, x = ys[n], xs[n]
-        p0, p1, p2 = image[y, x, 0], image[y, x, 1], image[y, x, 2]
-        best = np.float32(np.inf)
-        label = -1
-        for k in range(len(pairs)):
-            i, j = pairs[k, 0], pairs[k, 1]
-            if not (reachable[i, n] and reachable[j, n]):
-                continue
-            f, g = shades[k, 0], shades[k, 1]
-            b0, b1, b2 = ends[j, n, 0] * g, ends[j, n, 1] * g, ends[j, n, 2] * g
-            a0, a1, a2 = ends[i, n, 0] * f - b0, ends[i, n, 1] * f - b1, ends[i, n, 2] * f - b2
-            o0, o1, o2 = p0 - b0, p1 - b1, p2 - b2
+    for k in range(len(pairs)):
+        i, j = pairs[k, 0], pairs[k, 1]
+        f, g = shades[k, 0], shades[k, 1]
+        name_i, name_j = names[i], names[j]
+        for n in range(count):
+            b0, b1, b2 = ends[j, 0, n] * g, ends[j, 1, n] * g, ends[j, 2, n] * g
+            a0, a1, a2 = ends[i, 0, n] * f - b0, ends[i, 1, n] * f - b1, ends[i, 2, n] * f - b2
+            o0, o1, o2 = pixel[0, n] - b0, pixel[1, n] - b1, pixel[2, n] - b2
             length2 = max(a0 * a0 + a1 * a1 + a2 * a2, tiny)
             t = min(max((o0 * a0 + o1 * a1 + o2 * a2) / length2, zero), one)
             o0, o1, o2 = o0 - t * a0, o1 - t * a1, o2 - t * a2
             residual = o0 * o0 + o1 * o1 + o2 * o2
-            if residual < best:
-                best = residual
-                label = names[i] if t > half else names[j]
-        if label >= 0:
-            out[y, x] = label
+            # (no branch before the store: the loop stays in SIMD)
+            if reachable[i, n] & reachable[j, n] & (residual < best[n]):
+                best[n] = residual
+                label[n] = name_i if t > half else name_j
+    for n in range(count):
+        if label[n] >= 0:
+            out[ys[n], xs[n]] = label[n]

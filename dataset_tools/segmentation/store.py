@@ -5,13 +5,14 @@ a 10 s take at 120 FPS would be 117 GB)."""
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from manus_core.scratch import ScratchArrays
+from manus_core.scratch import GZIP_LEVEL, ScratchArrays
 
 from .background import bounding_window
 
@@ -79,4 +80,20 @@ class MaskStore(ScratchArrays):
                 block = np.zeros([t.stop - t.start for t in tiles], bool)
                 block[tuple(slice(b.start - t.start, b.stop - t.start) for b, t in zip(box, tiles))] = \
                     masks[tuple(slice(b.start - w.start, b.stop - w.start) for b, w in zip(box, view.window))]
-                array[(start + view.group, view.camera, *tiles)] = block
+                self._write_tiles(array, (start + view.group, view.camera, tiles[0].start, tiles[1].start), block)
+
+    def _write_tiles(self, array, corner: tuple[int, int, int, int], block: np.ndarray) -> None:
+        """The tiles of `block` (whole tiles from `corner` (group, camera, row, column) on, the last
+        ones cut at the image's edge) that hold a mask pixel, each compressed here as the dataset's
+        gzip filter would and written as its chunk: through HDF5's filter pipeline, a view's few
+        tiles cost as much again as compressing them."""
+        th, tw = self.tile
+        t, c, top, left = corner
+        for y in range(0, block.shape[0], th):
+            for x in range(0, block.shape[1], tw):
+                tile = block[y:y + th, x:x + tw]
+                if not tile.any():
+                    continue
+                chunk = np.zeros(self.tile, bool)   # a chunk is whole, past the image's edge too
+                chunk[:tile.shape[0], :tile.shape[1]] = tile
+                array.id.write_direct_chunk((t, c, top + y, left + x), zlib.compress(chunk, GZIP_LEVEL))

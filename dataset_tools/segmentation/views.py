@@ -91,7 +91,7 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     unmixed against the background and the two classes (edges.refine_edges)."""
     gains = [None if bg is None else bg.gain(image) for image, bg in zip(images, backgrounds)]
     fg = foreground_masks(images, backgrounds, min_area, gains)
-    report: dict = {"foreground_px": [np.count_nonzero(m) for m in fg]}
+    report: dict = {}
     if rig is not None and np.count_nonzero(fg.reshape(len(fg), -1).any(axis=1)) >= 2:
         fg, report["multiview"] = consistent_masks(rig, fg)
     images = np.asarray(images)
@@ -110,7 +110,6 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
         candidates = is_object[c][window] & fg[c][window]
         if candidates.any():
             labels[remove_small(candidates, min_area)] = 2
-        labels = refine_edges(image[window], labels, backgrounds[c].at_brightness(image, window, gains[c]),
-                               (1, 2), band=2)
+        labels = refine_edges(image[window], labels, backgrounds[c].median[window], (1, 2), band=2, gain=gains[c])
         hand[c][window], obj[c][window] = labels == 1, labels == 2
     return hand, obj, report

@@ -10,7 +10,6 @@ from pathlib import Path
 import click
 import numpy as np
 
-from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.bars import Bars
 from manus_capture.refine import RefineOptions, write_refined
@@ -18,7 +17,7 @@ from manus_capture.refine_tasks import RefineTask, refine_in_tasks
 from manus_capture.splat.checkpoint import load_checkpoint
 from manus_capture.splat.hand import HandGaussians
 from manus_capture.torch_threads import TRAIN_THREADS
-from manus_core.dataset import read_dataset
+from manus_core.dataset import read_dataset, take_key
 from manus_core.errors import RefineInputError
 
 from .cluster import cluster_options

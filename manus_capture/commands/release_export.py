@@ -7,11 +7,11 @@ from pathlib import Path
 import click
 import numpy as np
 
-from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from dataset_tools.release.brics_export import dataset_masks, export_release
 from dataset_tools.release.nerfstudio import write_frame_group
 from dataset_tools.sync import frame_groups
+from manus_core.dataset import take_key
 from manus_core.errors import InputError
 from manus_core.take import Take
 

@@ -9,7 +9,6 @@ import click
 import h5py
 import numpy as np
 
-from dataset_tools.annotate import take_key
 from dataset_tools.calibration.formats import load_cameras
 from dataset_tools.segmentation.groups import GROUPS_PER_TASK
 from dataset_tools.segmentation.takes import (
@@ -23,7 +22,7 @@ from dataset_tools.segmentation.takes import (
 )
 from manus_capture.bars import Bars
 from manus_core.cameras import CameraRig
-from manus_core.dataset import read_dataset
+from manus_core.dataset import read_dataset, take_key
 from manus_core.errors import SegmentationError
 from manus_core.provenance import provenance_attrs
 from manus_core.take import Take

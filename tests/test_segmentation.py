@@ -127,6 +127,7 @@ def test_foreground_in_blocks_is_the_per_pixel_mask(sim):
 def test_distance_in_a_window_is_exact_near_the_mask():
     """Carving reads a view's distance to its mask in a window around it: exact within
     DISTANCE_PAD of the mask's box, and a lower bound (from the distance to the box) beyond."""
+    from dataset_tools.segmentation.background import bounding_window
     from dataset_tools.segmentation.multiview import DISTANCE_PAD, _Distances
 
     mask = np.zeros((300, 400), bool)
@@ -139,10 +140,11 @@ def test_distance_in_a_window_is_exact_near_the_mask():
     uv = np.broadcast_to(np.stack([x, y], -1) + 0.3, (3, len(x), 2)).astype(float)
     depth = np.ones((3, len(x)))
     depth[2, ::2] = -1.0   # behind the third camera: not seen
-    distances = _Distances.of(masks, np.array([False, True, True])).at(uv, depth)
+    box = bounding_window(mask, 0)
+    distances = _Distances.of(masks, [None, box, box]).at(uv, depth)
     got = distances[0]
     assert np.array_equal(distances[1, 1::2], got[1::2]) and np.all(np.isinf(distances[1, ::2]))
-    outside = _Distances.of(masks, np.array([False, True, False])).at(uv + [[[-1.0, 0.0]]], depth)[0]
+    outside = _Distances.of(masks, [None, box, None]).at(uv + [[[-1.0, 0.0]]], depth)[0]
     assert np.isinf(outside[x == 0]).all() and np.isfinite(outside[x > 0]).all()   # column -1 is no pixel
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     near = ((y >= rows[0] - DISTANCE_PAD) & (y <= rows[-1] + DISTANCE_PAD)

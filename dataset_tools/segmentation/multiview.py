@@ -84,9 +84,10 @@ class _Distances:
     inside: np.ndarray     # (sum of the windows' areas,) float32
 
     @classmethod
-    def of(cls, masks: np.ndarray, use: np.ndarray) -> "_Distances":
-        views = np.flatnonzero(use)
-        boxes = [bounding_window(masks[c], 0) for c in views]
+    def of(cls, masks: np.ndarray, boxes: list[Window | None]) -> "_Distances":
+        """The distances to masks (C,H,W) of the views with a box (each mask's, bounding_window(mask, 0))."""
+        views = np.array([c for c, b in enumerate(boxes) if b is not None], np.int64)
+        boxes = [boxes[c] for c in views]
         windows = [grow_window(box, DISTANCE_PAD, masks.shape[1:]) for box in boxes]
         inside = [cv2.distanceTransform((~masks[c][w]).astype(np.uint8), cv2.DIST_L2, 3).ravel()
                   for c, w in zip(views, windows)]
@@ -145,7 +146,8 @@ def _votes(rig: CameraRig, dist: _Distances, points: np.ndarray, half: float) ->
 
 
 def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, voxel: float = 0.005,
-          coarse: float = 0.08, misses: int = 1, miss_fraction: float = 0.2, min_views: int = 2) -> Occupancy:
+          coarse: float = 0.08, misses: int = 1, miss_fraction: float = 0.2, min_views: int = 2,
+          boxes: list[Window | None] | None = None) -> Occupancy:
     """Occupancy of the foreground seen in masks (C,H,W) bool of the rig's views.
 
     Views with an empty mask say nothing (the hand may be hidden from them behind the table) and
@@ -153,14 +155,16 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     says which). A voxel is kept when it is a hit in all but `misses` (or `miss_fraction` of
     them, when more) of the views that see it, and in at least `min_views`: a view can miss
     because something static hides the hand from it (the table from the floor's cameras, which
-    see foreground elsewhere), and a big rig has several such views."""
+    see foreground elsewhere), and a big rig has several such views. `boxes`: each mask's box
+    (bounding_window(mask, 0)), when the caller has them (each is a pass over a whole view)."""
     masks = np.asarray(masks, bool)
     if masks.shape[0] != len(rig.ids):
         raise SegmentationError(f"carve: {masks.shape[0]} masks for {len(rig.ids)} cameras")
-    use = masks.reshape(len(masks), -1).any(axis=1)
+    boxes = [bounding_window(m, 0) for m in masks] if boxes is None else boxes
+    use = np.array([b is not None for b in boxes])
     if np.count_nonzero(use) < min_views:
         raise SegmentationError(f"carve: foreground in {np.count_nonzero(use)} views, need {min_views}")
-    dist = _Distances.of(masks, use)
+    dist = _Distances.of(masks, boxes)
     bounds = default_bounds(rig) if bounds is None else np.asarray(bounds, float)
     axes = [np.arange(lo + coarse / 2, hi, coarse) for lo, hi in bounds.T]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
@@ -248,15 +252,23 @@ def project_occupancy(rig: CameraRig, occupancy: Occupancy, shape: tuple[int, in
     voxel's centre, faces, edges and corners as points and closing the gaps projected eight times
     the points, and took a 1280x720 view 9 ms.)"""
     h, w = shape
+    windows = [(slice(0, h), slice(0, w))] * len(rig.ids) if windows is None else windows
     out = np.zeros((len(rig.ids), h, w), bool)
-    if not len(occupancy.centres):
-        return out
-    uv, extent = _boxes(rig, occupancy.centres, occupancy.voxel / 2)
-    for c in range(len(rig.ids)):
-        window = (slice(0, h), slice(0, w)) if windows is None else windows[c]
-        if window is not None:
-            out[c][window] = _draw_boxes(uv[c], extent[c], window)
+    for c, drawn in enumerate(_silhouettes(rig, occupancy, windows)):
+        if drawn is not None:
+            out[c][windows[c]] = drawn
     return out
+
+
+def _silhouettes(rig: CameraRig, occupancy: Occupancy, windows: list[Window | None]) -> list[np.ndarray | None]:
+    """project_occupancy's silhouette in each view's window alone (window-sized; None for a view
+    without a window): a frame group's (C,H,W) of mostly empty pixels cost more to allocate
+    than drawing the boxes."""
+    if not len(occupancy.centres):
+        return [None if w is None else np.zeros((w[0].stop - w[0].start, w[1].stop - w[1].start), bool)
+                for w in windows]
+    uv, extent = _boxes(rig, occupancy.centres, occupancy.voxel / 2)
+    return [None if w is None else _draw_boxes(uv[c], extent[c], w) for c, w in enumerate(windows)]
 
 
 def _supported(parts: np.ndarray, count: int, proj: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -277,7 +289,7 @@ def _touching(parts: np.ndarray, near: np.ndarray, count: int) -> np.ndarray:
     return out
 
 
-def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
+def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2, boxes: list[Window | None] | None = None,
                      **carve_options) -> tuple[np.ndarray, dict]:
     """Masks (C,H,W) made consistent across the views, and a report.
 
@@ -287,18 +299,20 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
     is kept lies in the mask, and a hole is enclosed by it. A part the volume does not hold is
     still kept when a volume carved by a majority (MAJORITY of the views that see a voxel, at least
     MAJORITY_MIN_VIEWS) holds it: something static hides it from more views than the carving
-    forgives."""
+    forgives. `boxes`: as carve's. The report's `boxes` are the consistent masks' boxes (rows,
+    columns; None where a view's mask is empty)."""
     masks = np.asarray(masks, bool)
-    occupancy = carve(rig, masks, **carve_options)
+    boxes = [bounding_window(m, 0) for m in masks] if boxes is None else boxes
+    occupancy = carve(rig, masks, boxes=boxes, **carve_options)
     if not len(occupancy.centres):
         warnings.warn("multi-view consistency: the views' masks share no volume; masks left as they are",
                       stacklevel=2)
         return masks.copy(), {"voxels": 0, "majority_voxels": 0, "dropped_px": [0] * len(masks),
-                              "filled_px": [0] * len(masks)}
+                              "filled_px": [0] * len(masks), "boxes": boxes}
     # a mask pixel's support depends on the projection up to support_px + 4 px away (the dilation,
     # then the closing's dilation and erosion), and one pixel of background all round
-    windows = [bounding_window(m, support_px + 5) for m in masks]
-    projected = project_occupancy(rig, occupancy, masks.shape[1:], windows)
+    windows = [None if b is None else grow_window(b, support_px + 5, masks.shape[1:]) for b in boxes]
+    projected = _silhouettes(rig, occupancy, windows)
     kernel = np.ones((2 * support_px + 1,) * 2, np.uint8)
     # whole parts, not pixels: a voxel needs hits in nearly every view that sees it, and what
     # something static hides from several views is carved away though the others see it (the
@@ -313,7 +327,7 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
             continue
         count, labels = cv2.connectedComponents(mask[window].astype(np.uint8), connectivity=8)
         parts.append(labels)
-        supported.append(_supported(labels, count, proj[window], kernel))
+        supported.append(_supported(labels, count, proj, kernel))
     unsupported = [s is not None and not s[1:].all() for s in supported]
     majority_voxels = 0
     # (a view's window is None where its mask is empty)
@@ -321,27 +335,32 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2,
         # a part apart from the hand that something static hides from several views (the object on
         # the table, from the floor's cameras and, behind the hand, from above: 14 % of the views of
         # make demo's grasp take lost it) is seen by most of the others
-        majority = carve(rig, masks, **{**carve_options, "miss_fraction": MAJORITY, "min_views": MAJORITY_MIN_VIEWS})
+        majority = carve(rig, masks, boxes=boxes,
+                         **{**carve_options, "miss_fraction": MAJORITY, "min_views": MAJORITY_MIN_VIEWS})
         majority_voxels = len(majority.centres)
         if majority_voxels:
-            more = project_occupancy(rig, majority, masks.shape[1:],
-                                     [w if u else None for w, u in zip(windows, unsupported)])
+            more = _silhouettes(rig, majority, [w if u else None for w, u in zip(windows, unsupported)])
             for c in np.flatnonzero(unsupported):
-                supported[c] |= _supported(parts[c], len(supported[c]), more[c][windows[c]], kernel)
+                supported[c] |= _supported(parts[c], len(supported[c]), more[c], kernel)
     # a view's mask is empty outside its window: only the windows are written
     out = np.zeros_like(masks)
-    dropped, filled = [], []
+    dropped, filled, kept_boxes = [], [], []
     for c, (mask, proj, window) in enumerate(zip(masks, projected, windows)):
         if window is None:
             dropped.append(0)   # a view that saw nothing (occluded) is not filled from the others
             filled.append(0)
+            kept_boxes.append(None)
             continue
-        mask, proj = mask[window], proj[window]
+        mask = mask[window]
         # (every part supported, as in most views: the mask itself, without a pass over the labels)
         kept = mask if supported[c][1:].all() else supported[c][parts[c]]
         done = kept | (fill_holes(kept) & proj)
         out[c][window] = done
         dropped.append(int(np.count_nonzero(mask & ~kept)))
         filled.append(int(np.count_nonzero(done & ~kept)))
+        box = bounding_window(done, 0)
+        kept_boxes.append(None if box is None else tuple(slice(w.start + b.start, w.start + b.stop)
+                                                         for w, b in zip(window, box)))
     return out, {"voxels": int(len(occupancy.centres)), "voxel_m": occupancy.voxel,
-                 "majority_voxels": int(majority_voxels), "dropped_px": dropped, "filled_px": filled}
+                 "majority_voxels": int(majority_voxels), "dropped_px": dropped, "filled_px": filled,
+                 "boxes": kept_boxes}

@@ -10,7 +10,7 @@ import numpy as np
 from manus_core.cameras import CameraRig
 from manus_core.errors import SegmentationError
 
-from .background import BackgroundModel, bounding_window, remove_small
+from .background import BackgroundModel, bounding_window, grow_window, remove_small
 from .colour import ColourModel, PaintKey
 from .edges import refine_edges
 from .multiview import Window, consistent_masks
@@ -92,14 +92,16 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     gains = [None if bg is None else bg.gain(image) for image, bg in zip(images, backgrounds)]
     fg = foreground_masks(images, backgrounds, min_area, gains)
     report: dict = {}
-    if rig is not None and np.count_nonzero(fg.reshape(len(fg), -1).any(axis=1)) >= 2:
-        fg, report["multiview"] = consistent_masks(rig, fg)
+    boxes = [bounding_window(m, 0) for m in fg]
+    if rig is not None and sum(b is not None for b in boxes) >= 2:
+        fg, report["multiview"] = consistent_masks(rig, fg, boxes=boxes)
+        boxes = report["multiview"]["boxes"]
     images = np.asarray(images)
     # the colours and the edges are decided in a window around the foreground (a hand is a small
     # part of a 1280x720 view): every pixel they look at is in it, so the labels are the same
-    windows = [bounding_window(m, EDGE_MARGIN) for m in fg]
+    windows = [None if b is None else grow_window(b, EDGE_MARGIN, fg.shape[1:]) for b in boxes]
     report["windows"] = windows
-    is_object = np.zeros_like(fg) if object_model is None else _object_by_colour(images, fg, windows, object_model)
+    is_object = None if object_model is None else _object_by_colour(images, fg, windows, object_model)
     obj = np.zeros(fg.shape, bool)
     # each view's window is read from fg before the hand's labels replace it there
     hand = fg
@@ -107,8 +109,8 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
         if window is None:
             continue
         labels = fg[c][window].astype(np.uint8)
-        candidates = is_object[c][window] & fg[c][window]
-        if candidates.any():
+        candidates = None if is_object is None else is_object[c][window] & fg[c][window]
+        if candidates is not None and candidates.any():
             labels[remove_small(candidates, min_area)] = 2
         labels = refine_edges(image[window], labels, backgrounds[c].median[window], (1, 2), band=2, gain=gains[c])
         hand[c][window], obj[c][window] = labels == 1, labels == 2

@@ -217,6 +217,46 @@ def test_refine_edges_unmixes_edge_pixels():
     assert np.array_equal(refined, truth)
 
 
+def test_unmixing_names_each_pixel_by_its_best_pair_as_numpy_does():
+    """The compiled unmixing (pairs in turn over all pixels) against its rule written out in numpy:
+    of the pairs whose two ends the pixel may reach, the first whose segment lies nearest the
+    pixel's colour names it by the end that makes up more than half of it; a pixel no pair may
+    explain keeps its label. Random colours, reach and shades, ties included (repeated ends)."""
+    from dataset_tools.segmentation.edges import _unmix
+
+    rng = np.random.default_rng(3)
+    n, ends_count = 500, 3
+    image = rng.integers(0, 255, (20, 25, 3)).astype(np.float32)
+    ys, xs = rng.integers(0, 20, n), rng.integers(0, 25, n)
+    ys, xs = np.unique(np.stack([ys, xs]), axis=1)
+    n = len(ys)
+    ends = rng.integers(0, 255, (ends_count, 3, n)).astype(np.float32)
+    ends[2, :, ::7] = ends[1, :, ::7]                      # two classes of the same colour: a tie
+    reachable = rng.random((ends_count, n)) < 0.8
+    pairs = np.array([(0, 0), (0, 1), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)], np.int64)
+    shades = rng.choice(np.float32([1.0, 0.8, 0.65]), (len(pairs), 2)).astype(np.float32)
+    names = np.array([0, 1, 2], np.uint8)
+    labels = rng.integers(0, 3, (20, 25)).astype(np.uint8)
+    out = labels.copy()
+    _unmix(image, ys, xs, np.ascontiguousarray(ends), reachable, pairs, shades, names, out)
+
+    pixel = image[ys, xs]                                          # (n,3)
+    a = ends[pairs[:, 0]].transpose(0, 2, 1) * shades[:, :1, None]  # (pairs,n,3)
+    b = ends[pairs[:, 1]].transpose(0, 2, 1) * shades[:, 1:, None]
+    d, o = a - b, pixel[None] - b
+    t = np.clip((o * d).sum(-1) / np.maximum((d * d).sum(-1), np.float32(1e-6)), 0, 1)
+    residual = ((o - t[..., None] * d) ** 2).sum(-1)
+    residual[~(reachable[pairs[:, 0]] & reachable[pairs[:, 1]])] = np.inf
+    best = np.argmin(residual, axis=0)                             # the first of equal ones
+    explained = np.isfinite(residual.min(axis=0))
+    k = np.arange(n)
+    name = np.where(t[best, k] > 0.5, names[pairs[best, 0]], names[pairs[best, 1]])
+    expected = labels.copy()
+    expected[ys[explained], xs[explained]] = name[explained]
+    assert (~explained).any() and explained.sum() > n // 2
+    assert np.array_equal(out, expected)
+
+
 def test_nearest_pure_pixels_within_reach_as_the_distance_transform_finds_them():
     """Edge pixels take the colours of their class's nearest pure pixels within REACH: the same
     distances as OpenCV's 5x5 distance transform there, a pure pixel at that distance, and none

@@ -18,7 +18,6 @@ from dataset_tools.segmentation.takes import segment_take
 from manus_capture.splat.gaussians import Gaussians
 from manus_capture.splat.hand import HandConfig, HandGaussians, evaluate_hand, train_hand
 from manus_capture.splat.losses import metric_lpips
-from manus_capture.splat.optimize import LearningRates
 from manus_capture.splat.takes import (
     HandFrames,
     crop_views,
@@ -29,7 +28,7 @@ from manus_capture.splat.takes import (
     object_views_from_take,
     spread_frames,
 )
-from manus_capture.splat.trainer import SURFACE_EPS2D, SURFEL_THIN_M, ObjectConfig, train_object
+from manus_capture.splat.trainer import FAST_LR, SURFACE_EPS2D, SURFEL_THIN_M, ObjectConfig, train_object
 from manus_capture.splat.trainer import evaluate as evaluate_object
 from manus_capture.template import SPACING_M, capsule_distances, capsule_surface, capsule_template, template_capsules
 from manus_core.cameras import CameraRig
@@ -97,7 +96,7 @@ def surface_hand(bone_lengths, sh_degree: int = 1) -> HandGaussians:
 
 def surface_hand_config(iterations: int, **changes) -> HandConfig:
     """HandConfig.surfels with the centre steps of HAND_MEANS_LR."""
-    lr = LearningRates(means=HAND_MEANS_LR, means_final=HAND_MEANS_LR / 100, sh0=1e-2, scales=1e-2)
+    lr = dataclasses.replace(FAST_LR, means=HAND_MEANS_LR, means_final=HAND_MEANS_LR / 100)
     return HandConfig.surfels(iterations, **{"lr": lr, **changes})
 
 

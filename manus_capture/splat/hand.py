@@ -37,7 +37,7 @@ from .optimize import Densification, LearningRates, Strategy, decay_means_lr, ma
 from .rasterize import EPS2D, rasterize
 from .sh import eval_sh
 from .strategy import DensifyStrategy
-from .trainer import FAST_LOSS, Views, add_scores, surfel_settings
+from .trainer import FAST_LOSS, FAST_LR, Views, add_scores, surfel_settings
 
 N_BONES = 20
 
@@ -275,10 +275,10 @@ class HandConfig:
     @classmethod
     def fast(cls, iterations: int = 400, **changes) -> "HandConfig":
         """Settings for short CPU runs on capture takes (see ObjectConfig.fast): the initial
-        Gaussians only, the initial skinning weights, SH degree 1, faster colour and scale steps,
+        Gaussians only, the initial skinning weights, SH degree 1 from the first step, FAST_LR's steps,
         no LPIPS term (FAST_LOSS)."""
-        base = dict(iterations=iterations, sh_degree=1, sh_increase_every=max(iterations // 3, 1), densify=None,
-                    skin_lr=0.0, lr=LearningRates(sh0=1e-2, scales=1e-2), weights=FAST_LOSS)
+        base = dict(iterations=iterations, sh_degree=1, sh_increase_every=1, densify=None, skin_lr=0.0, lr=FAST_LR,
+                    weights=FAST_LOSS)
         return cls(**{**base, **changes})
 
     @classmethod

@@ -39,17 +39,11 @@ def known_scene():
     gt = ((torch.rand(n, 3, generator=g) - 0.5) * 0.6, torch.randn(n, 4, generator=g),
           torch.rand(n, 3, generator=g) * 0.08 + 0.03, torch.rand(n, generator=g) * 0.5 + 0.5,
           torch.rand(n, 3, generator=g))
-    views = 14
-    viewmats = []
-    for i in range(views):
-        az = 2 * math.pi * i / views
-        el = 0.5 * math.sin(3 * az)
-        centre = torch.tensor([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]) * 2.5
-        viewmats.append(look_at(centre))
+    viewmats = _ring_of_cameras(14)
     W = H = 32
-    Ks = torch.tensor([[35.0, 0, 15.5], [0, 35.0, 15.5], [0, 0, 1]]).repeat(views, 1, 1)
-    images, alpha = render_reference(*gt, torch.stack(viewmats), Ks, W, H, background=torch.zeros(3))
-    return Views(images.float(), Ks, torch.stack(viewmats), alpha[..., 0] > 0.01)
+    Ks = torch.tensor([[35.0, 0, 15.5], [0, 35.0, 15.5], [0, 0, 1]]).repeat(len(viewmats), 1, 1)
+    images, alpha = render_reference(*gt, viewmats, Ks, W, H, background=torch.zeros(3))
+    return Views(images.float(), Ks, viewmats, alpha[..., 0] > 0.01)
 
 
 def test_object_fits_a_known_scene(known_scene):
@@ -86,6 +80,53 @@ def test_densification_and_mask_pruning_run_inside_training(known_scene):
     assert sum(r.get("mask_pruned", 0) for r in result.history) >= 1
     assert len(result.gaussians) == 151 + grown - removed
     assert float((result.gaussians.means.detach() - floater).norm(dim=-1).min()) > 0.3
+
+
+def _ring_of_cameras(views: int) -> torch.Tensor:
+    """World-to-camera matrices (V,4,4) of `views` cameras on a wavy ring 2.5 from the origin."""
+    viewmats = []
+    for i in range(views):
+        az = 2 * math.pi * i / views
+        el = 0.5 * math.sin(3 * az)
+        centre = torch.tensor([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]) * 2.5
+        viewmats.append(look_at(centre))
+    return torch.stack(viewmats)
+
+
+def test_fast_settings_learn_a_colour_that_changes_with_the_view():
+    """ObjectConfig.fast on Gaussians whose colour changes with the view (SH degree 1, rendered by
+    our rasterizer), started from their true places with other colours: it fits the training views
+    and the held-out ones only by learning the view-dependent coefficients. Measured 39.4 dB on the
+    training views and 30.4 held out; 32.7 and 28.1 with those coefficients stepped at 3DGS's
+    twentieth of the base colour's rate from a third of the steps on, as these settings did before
+    (on make demo's object: 24.40 dB held out then, 26.68 now)."""
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    points = torch.randn(n, 3, generator=g)
+    points = 0.3 * points / points.norm(dim=1, keepdim=True)
+
+    def spheres(colours: torch.Tensor) -> Gaussians:
+        model = Gaussians.from_points(points, colours, 1, opacity=0.9)
+        with torch.no_grad():
+            model.params["scales"].fill_(math.log(0.04))
+        return model
+
+    truth = spheres(torch.rand(n, 3, generator=g) * 0.4 + 0.3)
+    with torch.no_grad():
+        truth.params["shN"].copy_(torch.randn(n, 3, 3, generator=g) * 0.3)
+        viewmats = _ring_of_cameras(14)
+        Ks = torch.tensor([[35.0, 0, 15.5], [0, 35.0, 15.5], [0, 0, 1]]).repeat(len(viewmats), 1, 1)
+        images, alpha = render(truth, viewmats, Ks, 32, 32, torch.zeros(3))
+    scene = Views(images.clamp(0, 1), Ks, viewmats, alpha[..., 0] > 0.01)
+    test = [0, 5, 10]
+    train = [i for i in range(len(scene)) if i not in test]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = train_object(scene.subset(train), ObjectConfig.fast(400),
+                              init=spheres(torch.rand(n, 3, generator=torch.Generator().manual_seed(1)) * 0.4 + 0.3))
+    fitted = evaluate(result.gaussians, scene.subset(train))["psnr_mask"]
+    held_out = evaluate(result.gaussians, scene.subset(test))["psnr_mask"]
+    assert fitted >= 36.0 and held_out >= 29.3, (fitted, held_out)
 
 
 def test_checkpoint_round_trip(tmp_path, known_scene):

@@ -144,7 +144,7 @@ def measure(stage: str, argv: list[str], seconds: float, frames: int, cpu: int, 
 
 
 def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
-    take, empty, calib = session / "hand", session / "empty", session / "cameras.json"
+    take, calib = session / "hand", session / "cameras.json"
     opened = Take(take)
     frames = sum(opened.frame_count(c) for c in opened.cameras)
     ffmpeg = " && ".join(f"ffmpeg -v error -threads 1 -i {opened.video_file(c)} -f null -" for c in opened.cameras)
@@ -161,8 +161,7 @@ def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
     groups = len(np.load(take / "frame_groups.npz")["frame_ns"])
     dataset = session / "dataset.h5"
     views = groups * len(opened.cameras)
-    runs.append(measure("segment", [cli, "segment", str(take), "--calib", str(calib), "--background", str(empty),
-                                    "-o", str(dataset)], seconds, views, cpu, log))
+    runs.append(measure("segment", segment_argv(session, dataset), seconds, views, cpu, log))
     runs.append(measure("reconstruct hand", [cli, "reconstruct", "hand", "--take", str(take), "--dataset", str(dataset),
                                              "--cameras", str(calib), "--poses", "6", "--iterations", str(STEPS),
                                              "--threads", "1", "-o", str(session / "hand.pt"), "--force"],
@@ -181,11 +180,15 @@ def first_segment(session: Path, cpu: int, log: Path) -> float:
     its numba loops (manus_core/jit.py) and caches them on disk, which every later run loads; its
     seconds are printed apart, so that the table measures what a run costs once installed."""
     out = session / "first_segment.h5"
-    run = measure("segment (first)", [str(BIN / "manus-capture"), "segment", str(session / "hand"), "--calib",
-                                      str(session / "cameras.json"), "--background", str(session / "empty"),
-                                      "-o", str(out)], 0, 0, cpu, log)
+    run = measure("segment (first)", segment_argv(session, out), 0, 0, cpu, log)
     out.unlink()
     return run.wall_s
+
+
+def segment_argv(session: Path, out: Path) -> list[str]:
+    """The segment command on a session's hand take, against its empty cube, into `out`."""
+    return [str(BIN / "manus-capture"), "segment", str(session / "hand"), "--calib", str(session / "cameras.json"),
+            "--background", str(session / "empty"), "-o", str(out)]
 
 
 def sphere_object(path: Path, centre: np.ndarray, radius: float = 0.04, count: int = 4000) -> None:

@@ -31,6 +31,18 @@ def look_at(centre: torch.Tensor) -> torch.Tensor:
     return V
 
 
+def _ring_of_cameras(views: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """World-to-camera matrices (V,4,4) and intrinsics (V,3,3) of `views` 32x32 cameras on a wavy
+    ring 2.5 from the origin, looking at it."""
+    viewmats = []
+    for i in range(views):
+        az = 2 * math.pi * i / views
+        el = 0.5 * math.sin(3 * az)
+        centre = torch.tensor([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]) * 2.5
+        viewmats.append(look_at(centre))
+    return torch.stack(viewmats), torch.tensor([[35.0, 0, 15.5], [0, 35.0, 15.5], [0, 0, 1]]).repeat(views, 1, 1)
+
+
 @pytest.fixture(scope="module")
 def known_scene():
     """24 ground-truth Gaussians seen by 14 cameras on a wavy ring, rendered by the reference."""
@@ -39,10 +51,8 @@ def known_scene():
     gt = ((torch.rand(n, 3, generator=g) - 0.5) * 0.6, torch.randn(n, 4, generator=g),
           torch.rand(n, 3, generator=g) * 0.08 + 0.03, torch.rand(n, generator=g) * 0.5 + 0.5,
           torch.rand(n, 3, generator=g))
-    viewmats = _ring_of_cameras(14)
-    W = H = 32
-    Ks = torch.tensor([[35.0, 0, 15.5], [0, 35.0, 15.5], [0, 0, 1]]).repeat(len(viewmats), 1, 1)
-    images, alpha = render_reference(*gt, viewmats, Ks, W, H, background=torch.zeros(3))
+    viewmats, Ks = _ring_of_cameras(14)
+    images, alpha = render_reference(*gt, viewmats, Ks, 32, 32, background=torch.zeros(3))
     return Views(images.float(), Ks, viewmats, alpha[..., 0] > 0.01)
 
 
@@ -82,17 +92,6 @@ def test_densification_and_mask_pruning_run_inside_training(known_scene):
     assert float((result.gaussians.means.detach() - floater).norm(dim=-1).min()) > 0.3
 
 
-def _ring_of_cameras(views: int) -> torch.Tensor:
-    """World-to-camera matrices (V,4,4) of `views` cameras on a wavy ring 2.5 from the origin."""
-    viewmats = []
-    for i in range(views):
-        az = 2 * math.pi * i / views
-        el = 0.5 * math.sin(3 * az)
-        centre = torch.tensor([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]) * 2.5
-        viewmats.append(look_at(centre))
-    return torch.stack(viewmats)
-
-
 def test_fast_settings_learn_a_colour_that_changes_with_the_view():
     """ObjectConfig.fast on Gaussians whose colour changes with the view (SH degree 1, rendered by
     our rasterizer), started from their true places with other colours: it fits the training views
@@ -114,8 +113,7 @@ def test_fast_settings_learn_a_colour_that_changes_with_the_view():
     truth = spheres(torch.rand(n, 3, generator=g) * 0.4 + 0.3)
     with torch.no_grad():
         truth.params["shN"].copy_(torch.randn(n, 3, 3, generator=g) * 0.3)
-        viewmats = _ring_of_cameras(14)
-        Ks = torch.tensor([[35.0, 0, 15.5], [0, 35.0, 15.5], [0, 0, 1]]).repeat(len(viewmats), 1, 1)
+        viewmats, Ks = _ring_of_cameras(14)
         images, alpha = render(truth, viewmats, Ks, 32, 32, torch.zeros(3))
     scene = Views(images.clamp(0, 1), Ks, viewmats, alpha[..., 0] > 0.01)
     test = [0, 5, 10]

@@ -40,6 +40,7 @@ ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.999
 TRANSMITTANCE_MIN = 1e-4
 SIGMA_CUTOFF = 4.5  # q / 2 at 3 sigma
+EXP_FLOOR = -30.0  # -q / 2 is clamped here before exp (_splat_terms): far below -SIGMA_CUTOFF
 FOV_CLAMP = 1.3  # the Jacobian is taken no further out than 1.3 times the half field of view
 EPS2D = 0.3  # 3DGS's splat blur (pixels^2): no splat is drawn thinner than about a pixel
 
@@ -179,7 +180,10 @@ def _splat_terms(coeffs: torch.Tensor, op: torch.Tensor, basis: torch.Tensor) ->
     the mask of drawn entries, the transmittance before each entry and the final transmittance
     (T,P).
     """
-    g = torch.matmul(basis, coeffs.transpose(1, 2)).neg_().exp_()  # (T,P,L)
+    # Clamped first: on the CPU, exp of an argument below about -88 (a result under float32's
+    # smallest normal) leaves the vectorized path and costs some 30 times more, and most entries
+    # lie far outside their splat. Nothing below exp(-4.5) is drawn, so no drawn value changes.
+    g = torch.matmul(basis, coeffs.transpose(1, 2)).neg_().clamp_min_(EXP_FLOOR).exp_()  # (T,P,L)
     # Inside the 3-sigma ellipse (g >= e^-4.5) and alpha = o g >= 1/255, in one comparison;
     # padding has o = 0 and so an infinite bound.
     bound = torch.maximum(torch.full_like(op, math.exp(-SIGMA_CUTOFF)), ALPHA_MIN / op)

@@ -108,7 +108,7 @@ def _score(inputs: ModelInputs) -> tuple[float, float, float, list[dict], np.nda
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("demo", type=Path)
-    parser.add_argument("--iterations", type=int, default=400, help="hand training steps (the demo's default)")
+    parser.add_argument("--iterations", type=int, default=1000, help="hand training steps (the demo's default)")
     args = parser.parse_args()
     session = args.demo / "session"
     hand_take, object_take, background = (next(session.glob(f"*-{kind}*"))

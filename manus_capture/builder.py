@@ -130,7 +130,7 @@ class ModelInputs:
     object_masks: np.ndarray      # (C,H,W), rig order
     behind: dict[str, np.ndarray] | None = None   # the empty cube per camera (empty_scene)
     object_iterations: int = 400
-    hand_iterations: int = 400
+    hand_iterations: int = 1000
     scale: float = 1.0
     seed: int = 0
 

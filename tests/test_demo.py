@@ -111,6 +111,22 @@ def test_more_views_give_better_contacts(demo):
     assert views[0] < views[1] < views[2], views
 
 
+@pytest.mark.parametrize("args, steps", [([], (400, 1000)), (["--iterations", "300"], (300, 300)),
+                                         (["--iterations", "300", "--hand-iterations", "500"], (300, 500))])
+def test_demo_training_steps_by_model(tmp_path, monkeypatch, args, steps):
+    """The object's and MANUS-Hand's steps: 400 and 1000 by default (the hand as `reconstruct hand`),
+    both from --iterations, the hand's from --hand-iterations over it."""
+    seen = []
+
+    def run_demo(output, config, **_):
+        seen.append((config.object_iterations, config.hand_iterations))
+        raise SystemExit(0)
+
+    monkeypatch.setattr("manus_capture.commands.demo.run_demo", run_demo)
+    result = CliRunner().invoke(cli, ["demo", "-o", str(tmp_path / "out"), *args])
+    assert result.exit_code == 0 and seen == [steps], (result.output, seen)
+
+
 @pytest.fixture(scope="module")
 def second_seed(tmp_path_factory):
     """The same session with another seed (cameras, clocks and grasp drawn anew), all cameras only."""

@@ -32,16 +32,18 @@ def _views(text: str) -> tuple[int, ...]:
               help="A simulated subject (s01, s02, s03) or a subject file NAME.toml (docs/simulation.md).")
 @click.option("--views", "views", default="5,10,20,all", show_default=True, callback=lambda c, p, v: _views(v),
               help="Camera counts of the ablation (models rebuilt from that many cameras).")
-@click.option("--iterations", type=click.IntRange(50), default=400, show_default=True,
-              help="Training iterations of each Gaussian model.")
+@click.option("--iterations", type=click.IntRange(50), default=None,
+              help="Training iterations of both Gaussian models.  [default: the object 400, MANUS-Hand 1000]")
+@click.option("--hand-iterations", type=click.IntRange(50), default=None,
+              help="MANUS-Hand's training iterations, over --iterations.")
 @click.option("--refine-iterations", type=click.IntRange(0), default=20, show_default=True,
               help="Steps of refine's second stage (MANUS-Hand rendered into the views; docs/refine.md).")
 @click.option("--true-calibration", is_flag=True, help="Use the simulator's cameras instead of calibrating.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--force", is_flag=True, help="Run again into a folder that holds a finished demo.")
 def command(output: Path, cameras: int, resolution: str, fps: float, obj: str, subject: str,
-            views: tuple[int, ...], iterations: int, refine_iterations: int, true_calibration: bool, seed: int,
-            force: bool) -> None:
+            views: tuple[int, ...], iterations: int | None, hand_iterations: int | None, refine_iterations: int,
+            true_calibration: bool, seed: int, force: bool) -> None:
     """Record a painted-object session on the simulated cube (calibration, hand, object, grasp and
     canonical takes), run sync reports, calibrate, annotate, segment, reconstruct, refine, contacts
     and evaluate, and print every stage's error against ground truth. Writes OUTPUT/report.html and
@@ -52,9 +54,10 @@ def command(output: Path, cameras: int, resolution: str, fps: float, obj: str, s
         w, h = (int(v) for v in resolution.lower().split("x"))
     except ValueError:
         raise click.BadParameter(f"{resolution!r}: expected WxH, e.g. 320x180", param_hint="--resolution") from None
+    steps = {"object_iterations": iterations, "hand_iterations": hand_iterations or iterations}
     config = DemoConfig(cameras=cameras, resolution=(w, h), fps=fps, object=obj, subject=subject, views=views,
-                        object_iterations=iterations, hand_iterations=iterations, refine_iterations=refine_iterations,
-                        true_calibration=true_calibration, seed=seed)
+                        refine_iterations=refine_iterations, true_calibration=true_calibration, seed=seed,
+                        **{k: v for k, v in steps.items() if v is not None})
     summary = run_demo(output, config, say=click.echo, force=force)
     click.echo(text_table(summary["stages"]))
     ablation = ", ".join(f"{k} cams {v:.3f}" for k, v in summary["views"].items())

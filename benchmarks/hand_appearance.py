@@ -1,6 +1,6 @@
 """Where MANUS-Hand's held-out PSNR on the hand's pixels goes, on a finished demo.
 
-    python benchmarks/hand_appearance.py DEMO [--iterations 400]
+    python benchmarks/hand_appearance.py DEMO [--iterations 1000] [--refined]
 
 DEMO is the output folder of `manus-capture demo`. MANUS-Hand is trained as the demo trains it
 (ModelInputs: the hand take's per-frame IK fits from annotate, segment's hand masks, every camera), once more
@@ -14,6 +14,9 @@ code may read the truth, the pipeline never does), and each is scored on the hel
   carry what it learnt to new poses;
 - the same split by each pixel's distance to the mask's edge: share of the mask's pixels, PSNR,
   share of the squared error, and the share the model leaves uncovered (alpha under 0.5);
+- with --refined, the poses of the training and held-out rows refined against their images through
+  the first model (refine without its smoothness term), the model trained again on them and
+  scored on the held-out poses as annotate gave them and as refined: what the poses' error costs;
 - the texture floor: the PSNR, on the pixels over 2.5 px inside the mask, of the image blurred
   by a Gaussian of 1 px against itself, what a model as sharp as that but exact in shape and
   colour would score there.
@@ -34,8 +37,10 @@ import torch
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture.builder import ModelInputs
 from manus_capture.pose_score import truth_at_groups
-from manus_capture.splat.hand import evaluate_hand
-from manus_capture.splat.takes import hand_views_from_take
+from manus_capture.refine import RefineOptions, fit_poses
+from manus_capture.refine_views import pose_views
+from manus_capture.splat.hand import HandGaussians, evaluate_hand
+from manus_capture.splat.takes import HandFrames, hand_views_from_take
 from manus_capture.splat.trainer import SURFACE_EPS2D
 from manus_core.dataset import read_dataset, take_key
 
@@ -75,16 +80,17 @@ def texture_floor(images: np.ndarray, masks: np.ndarray, sigma: float = 1.0) -> 
     return _psnr(squared, count)
 
 
-def _score(inputs: ModelInputs) -> tuple[float, float, float, list[dict], np.ndarray, np.ndarray]:
+def _score(inputs: ModelInputs, test_frames: HandFrames | None = None) -> tuple:
     """Train on every camera; held-out PSNR on the mask (over the empty scene, and over black),
-    the training poses' (over the empty scene) and the band rows; the views' images and masks."""
+    the training poses' (over the empty scene) and the band rows; the views' images and masks;
+    the model. The held-out poses are test_frames' when given."""
     hand = inputs.train_hand_model(np.arange(len(inputs.rig)))
     train_poses, train_views = hand_views_from_take(inputs.hand_take, inputs.rig, inputs.hand_frames,
                                                     inputs.train_rows, masks=inputs.train_masks,
                                                     behind=inputs.behind)
     trained = evaluate_hand(hand, train_poses, train_views, eps2d=SURFACE_EPS2D)["psnr_mask"]
-    poses, views = hand_views_from_take(inputs.hand_take, inputs.rig, inputs.hand_frames, inputs.test_rows,
-                                        masks=inputs.test_masks, behind=inputs.behind)
+    poses, views = hand_views_from_take(inputs.hand_take, inputs.rig, test_frames or inputs.hand_frames,
+                                        inputs.test_rows, masks=inputs.test_masks, behind=inputs.behind)
     black = torch.zeros(3)
     rendered, alphas, targets, images, masks = [], [], [], [], []
     with torch.no_grad():
@@ -102,13 +108,30 @@ def _score(inputs: ModelInputs) -> tuple[float, float, float, list[dict], np.nda
     demo_figure = evaluate_hand(hand, poses, views, eps2d=SURFACE_EPS2D)["psnr_mask"]
     on_black = evaluate_hand(hand, poses, [dataclasses.replace(v, backgrounds=None) for v in views],
                              eps2d=SURFACE_EPS2D)["psnr_mask"]
-    return demo_figure, on_black, trained, band_scores(rendered, alphas, targets, masks), images, masks
+    return demo_figure, on_black, trained, band_scores(rendered, alphas, targets, masks), images, masks, hand
+
+
+def refined_frames(inputs: ModelInputs, hand: HandGaussians, dataset: Path) -> HandFrames:
+    """The training and held-out rows' poses refined against their images through `hand`: refine's
+    defaults without the smoothness term, which the hand take runs through its poses too fast for
+    (docs/splat.md, "Training poses")."""
+    rows = np.concatenate([inputs.train_rows, inputs.test_rows])
+    angles = np.full_like(inputs.hand_frames.angles, np.nan)
+    angles[rows] = inputs.hand_frames.angles[rows]
+    ann = read_dataset(dataset)[take_key(inputs.hand_take)]
+    views = pose_views(inputs.hand_take, dataset, ann, inputs.rig, angles)
+    result = fit_poses(hand, angles, views, RefineOptions(smoothness=0.0, eps2d=SURFACE_EPS2D))
+    refined = inputs.hand_frames.angles.copy()
+    refined[rows] = result.angles[rows]
+    return dataclasses.replace(inputs.hand_frames, angles=refined)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("demo", type=Path)
     parser.add_argument("--iterations", type=int, default=1000, help="hand training steps (the demo's default)")
+    parser.add_argument("--refined", action="store_true",
+                        help="two more rows: the poses refined against the images through the first row's model")
     args = parser.parse_args()
     session = args.demo / "session"
     hand_take, object_take, background = (next(session.glob(f"*-{kind}*"))
@@ -122,11 +145,20 @@ def main() -> None:
     print("| poses | hand PSNR on the mask (dB) | over black | training poses | "
           + " | ".join(f"{lo:g}-{hi:g} px" for lo, hi in BANDS) + " |")
     print("|---|---|---|---|" + "---|" * len(BANDS))
-    for name, frames in (("annotate", inputs.hand_frames), ("true (ablation)", true_frames)):
-        psnr, on_black, trained, bands, images, masks = _score(dataclasses.replace(inputs, hand_frames=frames))
+    def row(name: str, frames: HandFrames, test_frames: HandFrames | None = None) -> tuple:
+        psnr, on_black, trained, bands, images, masks, hand = _score(dataclasses.replace(inputs, hand_frames=frames),
+                                                                     test_frames)
         cells = " | ".join(f"{b['psnr']:.1f} dB, {100 * b['share']:.0f} % of pixels, {100 * b['error_share']:.0f} % of "
                            f"error, {100 * b['uncovered']:.0f} % uncovered" for b in bands)
         print(f"| {name} | {psnr:.2f} | {on_black:.2f} | {trained:.2f} | {cells} |", flush=True)
+        return images, masks, hand
+
+    images, masks, hand = row("annotate", inputs.hand_frames)
+    row("true (ablation)", true_frames)
+    if args.refined:
+        refined = refined_frames(inputs, hand, dataset)
+        row("refined, trained on; held out at annotate's", refined, inputs.hand_frames)
+        row("refined, trained on and held out", refined)
     print(f"\ntexture floor: the held-out images blurred by 1 px against themselves, over {INNER_PX:g} px inside "
           f"the mask: {texture_floor(images, masks):.1f} dB")
 

@@ -45,6 +45,26 @@ def test_ssim_of_one_window_matches_the_definition():
     assert expected < 0.9  # the noise is visible to SSIM
 
 
+def test_ssim_map_is_the_2d_windows_everywhere():
+    """The separable filtering gives the SSIM map of the 11x11 window at every position (float64)."""
+    gen = torch.Generator().manual_seed(2)
+    x = torch.rand(2, 3, 30, 37, generator=gen, dtype=torch.float64)
+    y = (x + 0.1 * torch.randn(x.shape, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    r = torch.arange(11, dtype=torch.float64) - 5
+    w1 = torch.exp(-r * r / (2 * 1.5 ** 2))
+    w = (torch.outer(w1, w1) / torch.outer(w1, w1).sum()).expand(3, 1, 11, 11)
+
+    def f(a):
+        return torch.nn.functional.conv2d(a, w, groups=3)
+
+    mx, my = f(x), f(y)
+    vx, vy, cxy = f(x * x) - mx ** 2, f(y * y) - my ** 2, f(x * y) - mx * my
+    expected = (2 * mx * my + C1) * (2 * cxy + C2) / ((mx ** 2 + my ** 2 + C1) * (vx + vy + C2))
+    got = ssim(x, y, reduce=False)
+    assert got.shape == (2, 3, 20, 27)
+    assert float((got - expected).abs().max()) < 1e-12
+
+
 def test_psnr_known_value():
     x = torch.zeros(1, 3, 8, 8)
     assert math.isclose(float(psnr(x + 0.1, x)), 20.0, rel_tol=1e-5)  # MSE 0.01

@@ -58,6 +58,34 @@ def test_skinning_weights_are_normalized_and_local(hand):
     assert float((w * foreign).sum(-1).max()) < 1e-6
 
 
+def test_skinning_weights_interpolate_the_grid_trilinearly():
+    """The weights at any point are torch's trilinear grid_sample of the grid (clamped at zero, border
+    padding for points outside), normalized; its gradients with respect to the points and the
+    grid too."""
+    model = HandGaussians.initialize(per_bone=30, sh_degree=1, seed=4)
+    gen = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        model.skin_grid += 0.3 * torch.randn(model.skin_grid.shape, generator=gen)  # negative cells too
+    span = model.grid_max - model.grid_min
+    points = torch.cat([model.gaussians.means.detach(),
+                        model.grid_min + span * (1.6 * torch.rand(40, 3, generator=gen) - 0.3)])  # some outside
+    points.requires_grad_(True)
+
+    def reference(p):
+        unit = 2 * (p - model.grid_min) / span - 1
+        w = torch.nn.functional.grid_sample(model.skin_grid.clamp_min(0)[None], unit.reshape(1, -1, 1, 1, 3),
+                                            mode="bilinear", padding_mode="border", align_corners=True)
+        w = w.reshape(20, -1).T
+        return w / w.sum(-1, keepdim=True).clamp_min(1e-8)
+
+    probe = torch.randn(20, generator=gen)
+    got, expected = model.skinning_weights(points), reference(points)
+    assert float((got - expected).detach().abs().max()) < 1e-5
+    grads = [torch.autograd.grad((w * probe).sum(), (points, model.skin_grid)) for w in (got, expected)]
+    for a, b in zip(*grads):
+        assert float((a - b).abs().max()) < 1e-4 * float(b.abs().max()), (a - b).abs().max()
+
+
 def test_rest_pose_leaves_the_gaussians_in_place(hand):
     posed = hand.pose(torch.zeros(26))
     assert torch.allclose(posed["means"], hand.gaussians.means, atol=1e-6)

@@ -201,11 +201,20 @@ class HandGaussians(torch.nn.Module):
     def skinning_weights(self, points: torch.Tensor | None = None) -> torch.Tensor:
         """Weights (N,20) at canonical points (default: the Gaussians' centres), summing to one."""
         points = self.gaussians.means if points is None else points
-        unit = 2 * (points - self.grid_min) / (self.grid_max - self.grid_min) - 1  # x, y, z in [-1, 1]
-        grid = self.skin_grid.clamp_min(0)[None]  # (1,20,G,G,G)
-        w = F.grid_sample(grid, unit.reshape(1, -1, 1, 1, 3).to(grid.dtype), mode="bilinear",
-                          padding_mode="border", align_corners=True)  # trilinear for 5D input
-        w = w.reshape(N_BONES, -1).T
+        # Trilinear interpolation as grid_sample's (align_corners, border padding: the point clamped
+        # into the grid; x runs along the grid's last axis), written out: grid_sample on the CPU
+        # and its backward took a sixth of a training step, the eight corners' gather a fraction.
+        G = self.skin_grid.shape[-1]
+        u = ((points - self.grid_min) / (self.grid_max - self.grid_min) * (G - 1)).clamp(0, G - 1)
+        lo = u.detach().floor().clamp_max(G - 2)
+        f = (u - lo).to(self.skin_grid.dtype)  # (N,3) within the cell
+        x, y, z = lo.long().unbind(-1)
+        corners = torch.tensor([(dx, dy, dz) for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], device=u.device)
+        cx, cy, cz = corners.unbind(-1)
+        index = ((z + cz[:, None]) * G + y + cy[:, None]) * G + x + cx[:, None]  # (8,N)
+        share = torch.where(corners[:, None, :] == 1, f, 1 - f).prod(-1)  # (8,N)
+        values = self.skin_grid.reshape(N_BONES, -1).index_select(1, index.reshape(-1)).clamp_min(0)
+        w = (values.reshape(N_BONES, 8, -1) * share).sum(1).T  # (N,20)
         return w / w.sum(-1, keepdim=True).clamp_min(1e-8)
 
     def pose(self, angles: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -145,6 +145,7 @@ def main() -> None:
     print("| poses | hand PSNR on the mask (dB) | over black | training poses | "
           + " | ".join(f"{lo:g}-{hi:g} px" for lo, hi in BANDS) + " |")
     print("|---|---|---|---|" + "---|" * len(BANDS))
+
     def row(name: str, frames: HandFrames, test_frames: HandFrames | None = None) -> tuple:
         psnr, on_black, trained, bands, images, masks, hand = _score(dataclasses.replace(inputs, hand_frames=frames),
                                                                      test_frames)

@@ -78,8 +78,8 @@ class DemoConfig:
                                                      "grasp": 2.0, "canonical": 0.5})
     views: tuple[int, ...] = (5, 10, 20, 0)        # camera ablation; 0 = all cameras
     eval_views: int = 10
-    object_iterations: int = 400
-    hand_iterations: int = 1000
+    object_iterations: int = ModelInputs.object_iterations
+    hand_iterations: int = ModelInputs.hand_iterations
     hand_frames: int = 20
     refine_iterations: int = 20                     # refine's second stage (rendering MANUS-Hand)
     scale: float = 1.0

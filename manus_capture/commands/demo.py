@@ -33,7 +33,8 @@ def _views(text: str) -> tuple[int, ...]:
 @click.option("--views", "views", default="5,10,20,all", show_default=True, callback=lambda c, p, v: _views(v),
               help="Camera counts of the ablation (models rebuilt from that many cameras).")
 @click.option("--iterations", type=click.IntRange(50), default=None,
-              help="Training iterations of both Gaussian models.  [default: the object 400, MANUS-Hand 1000]")
+              help="Training iterations of both Gaussian models.  [default: the object "
+                   f"{DemoConfig.object_iterations}, MANUS-Hand {DemoConfig.hand_iterations}]")
 @click.option("--hand-iterations", type=click.IntRange(50), default=None,
               help="MANUS-Hand's training iterations, over --iterations.")
 @click.option("--refine-iterations", type=click.IntRange(0), default=20, show_default=True,

@@ -3,12 +3,15 @@ against the capsule template, IoU and F1 with their spread over seeds, and the c
 
     python benchmarks/contact_table.py -o OUT [--subjects s01,s02,s03] [--objects mug,box]
                                        [--seeds 0,1] [--cameras 24] [--ablation 5,10,20,all]
-                                       [--iterations 400]
+                                       [--iterations 400] [--simulated-keypoints]
 
 Each run is `manus-capture demo` with that subject, object and seed (the seed draws the rig's
 cameras and clocks and the grasp); OUT/SUBJECT-OBJECT-SEED holds it. The runs of the first seed
-also rebuild the models from fewer cameras (--ablation); the others use all cameras only. A run
-already finished there is read back, not run again. Prints a markdown table per session and per
+also rebuild the models from fewer cameras (--ablation); the others use all cameras only.
+--simulated-keypoints annotates from the simulated detector instead of the ONNX detector, as the
+demo's flag of that name does (the tables of docs/contacts.md made before the ONNX detector became
+the demo's default were made so).
+A run already finished there is read back, not run again. Prints a markdown table per session and per
 subject.
 """
 
@@ -23,13 +26,15 @@ import numpy as np
 from manus_capture.demo import DemoConfig, run_demo
 
 
-def _run(out: Path, subject: str, obj: str, seed: int, cameras: int, views: tuple[int, ...], iterations: int) -> dict:
+def _run(out: Path, subject: str, obj: str, seed: int, cameras: int, views: tuple[int, ...], iterations: int,
+         simulated_keypoints: bool) -> dict:
     folder = out / f"{subject}-{obj}-{seed}"
     if (folder / "summary.json").exists():
         return json.loads((folder / "summary.json").read_text())
     print(f"== {folder.name}", flush=True)
     config = DemoConfig(cameras=cameras, subject=subject, object=obj, seed=seed, views=views,
-                        object_iterations=iterations, hand_iterations=iterations)
+                        object_iterations=iterations, hand_iterations=iterations,
+                        simulated_keypoints=simulated_keypoints)
     return run_demo(folder, config, say=lambda line: print("   ", line, flush=True), force=True)
 
 
@@ -52,11 +57,14 @@ def main() -> None:
     parser.add_argument("--ablation", default="5,10,20,all")
     parser.add_argument("--iterations", type=int, default=DemoConfig.hand_iterations,
                         help="training steps of each Gaussian model (the demo's --iterations)")
+    parser.add_argument("--simulated-keypoints", action="store_true",
+                        help="the demo's ablation: keypoints from the simulated detector, not the ONNX detector")
     args = parser.parse_args()
     subjects, objects = args.subjects.split(","), args.objects.split(",")
     seeds = [int(s) for s in args.seeds.split(",")]
     ablation = tuple(0 if v == "all" else int(v) for v in args.ablation.split(","))
-    runs = {(s, o, k): _run(args.output, s, o, k, args.cameras, ablation if k == seeds[0] else (0,), args.iterations)
+    runs = {(s, o, k): _run(args.output, s, o, k, args.cameras, ablation if k == seeds[0] else (0,), args.iterations,
+                            args.simulated_keypoints)
             for s in subjects for o in objects for k in seeds}
 
     counts = sorted({int(c) for r in runs.values() for c in r["views"]})

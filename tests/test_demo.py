@@ -4,6 +4,7 @@ scored against the simulator's truth; the report and summary.json carry the figu
 from __future__ import annotations
 
 import json
+import shutil
 
 import h5py
 import numpy as np
@@ -14,6 +15,7 @@ from click.testing import CliRunner
 from dataset_tools.calibration.formats import load_cameras
 from manus_capture import api
 from manus_capture.cli import cli
+from manus_capture.demo import Demo, DemoConfig
 from manus_capture.pose_score import truth_at_groups
 from manus_capture.splat.checkpoint import load_checkpoint, save_checkpoint
 from manus_capture.splat.hand import HandGaussians
@@ -25,8 +27,11 @@ from rig.sim.subject import with_sim_subject
 
 # the Gaussian hand's least lead over the template that both seeds must keep
 MARGIN = 1.10
+# The stages after annotate are held to figures measured with the simulated detector (the true joints
+# with 2 px of noise and 10 % outliers), whose keypoints are the same on every machine; what the
+# demo's default, the ONNX detector on the frames, gives is test_default_keypoints_are_the_onnx_detectors.
 ARGS = ["--cameras", "12", "--resolution", "320x180", "--fps", "20", "--views", "3,6,all", "--iterations", "300",
-        "--refine-iterations", "5"]
+        "--refine-iterations", "5", "--simulated-keypoints"]
 
 
 @pytest.fixture(scope="module")
@@ -111,20 +116,71 @@ def test_more_views_give_better_contacts(demo):
     assert views[0] < views[1] < views[2], views
 
 
+def demo_config(tmp_path, monkeypatch, args: list[str]) -> DemoConfig:
+    """The DemoConfig that `manus-capture demo ARGS` runs with."""
+    seen = []
+
+    def run_demo(output, config, **_):
+        seen.append(config)
+        raise SystemExit(0)
+
+    monkeypatch.setattr("manus_capture.commands.demo.run_demo", run_demo)
+    result = CliRunner().invoke(cli, ["demo", "-o", str(tmp_path / "out"), *args])
+    assert result.exit_code == 0 and len(seen) == 1, result.output
+    return seen[0]
+
+
 @pytest.mark.parametrize("args, steps", [([], (400, 1000)), (["--iterations", "300"], (300, 300)),
                                          (["--iterations", "300", "--hand-iterations", "500"], (300, 500))])
 def test_demo_training_steps_by_model(tmp_path, monkeypatch, args, steps):
     """The object's and MANUS-Hand's steps: 400 and 1000 by default (the hand as `reconstruct hand`),
     both from --iterations, the hand's from --hand-iterations over it."""
-    seen = []
+    config = demo_config(tmp_path, monkeypatch, args)
+    assert (config.object_iterations, config.hand_iterations) == steps
 
-    def run_demo(output, config, **_):
-        seen.append((config.object_iterations, config.hand_iterations))
-        raise SystemExit(0)
 
-    monkeypatch.setattr("manus_capture.commands.demo.run_demo", run_demo)
-    result = CliRunner().invoke(cli, ["demo", "-o", str(tmp_path / "out"), *args])
-    assert result.exit_code == 0 and seen == [steps], (result.output, seen)
+def test_demo_reads_no_truth_unless_an_ablation_is_named(tmp_path, monkeypatch):
+    """The simulated detector and the simulator's cameras read the ground truth: only when named."""
+    config = demo_config(tmp_path, monkeypatch, [])
+    assert not config.simulated_keypoints and not config.true_calibration
+    config = demo_config(tmp_path, monkeypatch, ["--simulated-keypoints", "--true-calibration"])
+    assert config.simulated_keypoints and config.true_calibration
+
+
+def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
+    """`make demo` annotates with the ONNX detector on the frames, and the bones come from its keypoints
+    of the hand take. Measured on this session (12 cameras at 320x180, the hand 20-40 px across):
+    a hand found in 26 % of the grasp's views, its joints triangulated 9.1 mm and fitted 9.4 mm from
+    the truth, finger angles 12.0 deg RMS, the bones 10.1 mm short at worst (MediaPipe's landmarks on
+    these renders span 5-9 % less than the true joints; on the real photos of test_keypoints_real
+    they do not); the simulated detector's keypoints of the same takes are fitted 3.1 mm off, 8.4 deg
+    (test_stages_agree_with_the_simulators_truth). The bounds give the detector's figures a factor 2."""
+    out, summary, _ = demo
+    assert stage(summary, "annotate")["keypoints"] == "simulated"
+    run = tmp_path / "run"
+    shutil.copytree(out / "session", run / "session", ignore=shutil.ignore_patterns("subjects"))
+    (run / "calib").symlink_to(out / "calib")
+    figures = Demo(run, DemoConfig(), say=lambda _: None).annotate()
+    assert figures["keypoints"] == "detect", figures
+    for name in ("01-hand", "03-grasp1", "04-canonical1"):
+        assert (run / "session" / name / "keypoints2d.h5").is_file(), name
+    with h5py.File(run / "DATASET.h5") as f:
+        attrs = f["session/03-grasp1"].attrs
+        assert attrs["keypoint_source"].startswith("detect:") and "from 01-hand" in attrs["bone_source"], dict(attrs)
+    assert figures["views_with_hand"] > 0.13 and figures["fitted_mpjpe_mm"] < 19, figures
+    assert figures["finger_angle_rms_deg"] < 24 and figures["bone_length_err_mm"] < 20, figures
+
+
+def test_a_demo_run_again_estimates_the_bones_again(tmp_path):
+    """A forced run records a new session: the subject file of the run before (which annotate would
+    read instead of the hand take) goes."""
+    demo = Demo(tmp_path, DemoConfig(cameras=6, resolution=(160, 90), fps=10, durations=dict.fromkeys(
+        ("calibration", "hand", "object", "grasp", "canonical"), 0.1)), say=lambda _: None)
+    stale = demo.session / "subjects" / "s01.json"
+    stale.parent.mkdir(parents=True)
+    stale.write_text("{}")
+    demo.record()
+    assert not stale.exists() and (demo.session / "session.toml").is_file()
 
 
 @pytest.fixture(scope="module")
@@ -409,9 +465,8 @@ def test_api_refine(demo, tmp_path):
 
 
 def test_true_calibration_ablation_feeds_the_simulators_cameras(demo, tmp_path):
-    """--true-calibration, the one ablation that hands the simulator's intrinsics and poses to the
+    """--true-calibration, the ablation that hands the simulator's intrinsics and poses to the
     pipeline: calibrate writes the take's true cameras instead of calibrating."""
-    from manus_capture.demo import Demo, DemoConfig
     from manus_capture.splat.takes import truth_cameras
 
     out, _, _ = demo

@@ -40,11 +40,14 @@ def _views(text: str) -> tuple[int, ...]:
 @click.option("--refine-iterations", type=click.IntRange(0), default=20, show_default=True,
               help="Steps of refine's second stage (MANUS-Hand rendered into the views; docs/refine.md).")
 @click.option("--true-calibration", is_flag=True, help="Use the simulator's cameras instead of calibrating.")
+@click.option("--simulated-keypoints", is_flag=True,
+              help="Ablation: annotate from the true joints with the simulated detector's noise and outliers "
+                   "instead of the ONNX detector on the frames (reads ground_truth.h5; docs/annotate.md).")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--force", is_flag=True, help="Run again into a folder that holds a finished demo.")
 def command(output: Path, cameras: int, resolution: str, fps: float, obj: str, subject: str,
             views: tuple[int, ...], iterations: int | None, hand_iterations: int | None, refine_iterations: int,
-            true_calibration: bool, seed: int, force: bool) -> None:
+            true_calibration: bool, simulated_keypoints: bool, seed: int, force: bool) -> None:
     """Record a painted-object session on the simulated cube (calibration, hand, object, grasp and
     canonical takes), run sync reports, calibrate, annotate, segment, reconstruct, refine, contacts
     and evaluate, and print every stage's error against ground truth. Writes OUTPUT/report.html and
@@ -57,7 +60,8 @@ def command(output: Path, cameras: int, resolution: str, fps: float, obj: str, s
         raise click.BadParameter(f"{resolution!r}: expected WxH, e.g. 320x180", param_hint="--resolution") from None
     steps = {"object_iterations": iterations, "hand_iterations": hand_iterations or iterations}
     config = DemoConfig(cameras=cameras, resolution=(w, h), fps=fps, object=obj, subject=subject, views=views,
-                        refine_iterations=refine_iterations, true_calibration=true_calibration, seed=seed,
+                        refine_iterations=refine_iterations, true_calibration=true_calibration,
+                        simulated_keypoints=simulated_keypoints, seed=seed,
                         **{k: v for k, v in steps.items() if v is not None})
     summary = run_demo(output, config, say=click.echo, force=force)
     click.echo(text_table(summary["stages"]))

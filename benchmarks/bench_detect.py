@@ -9,7 +9,8 @@ one thread: `track=False`, the palm detector and two passes of the keypoint mode
 the hand is lost and, while none is found, on one frame in 4 (the frames between tracked backwards
 from where it finds the hand), one pass on the crop around the previous frame's keypoints elsewhere;
 the tracker of earlier rounds beside it (afresh every 16 frames, the palm detector on every frame
-without a hand: `redetect_every=16, search_every=1`); tracking with
+without a hand: `redetect_every=16, search_every=1`); tracking with the palm detector looking at
+square tiles of each frame too (`detect --palm-tiles`); tracking with
 MediaPipe's lite keypoint model (`--model mediapipe-hand-lite`); and tracking with the full model
 in int8 (`--model mediapipe-hand-int8`), calibrated by `models quantize` on another take (a second
 subject, s03: a larger hand, darker skin; 4 cameras, 0.25 s) in a model cache of the benchmark's
@@ -42,8 +43,10 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1]), str(Path(__file__).res
 
 from int8_cache import quantized_cache  # noqa: E402
 
-from dataset_tools.keypoints import hand_keypoint_detector  # noqa: E402
+from dataset_tools.keypoints.detector import Detector  # noqa: E402
 from dataset_tools.keypoints.keypoints2d import REDETECT_EVERY, SEARCH_EVERY, detect_take  # noqa: E402
+from dataset_tools.keypoints.models import load_model  # noqa: E402
+from dataset_tools.keypoints.palm import PalmDetector  # noqa: E402
 from dataset_tools.simulated_detector import exposure_times, joints_at  # noqa: E402
 from manus_core.ground_truth import GroundTruth  # noqa: E402
 from manus_core.take import Take  # noqa: E402
@@ -126,13 +129,15 @@ def main() -> None:
         decode_s = [timed(lambda: [None for c in take.cameras for _ in take.iter_frames(c)])[1] for _ in range(2)][1]
         rates, errors = {}, {}
         default = dict(redetect_every=REDETECT_EVERY, search_every=SEARCH_EVERY)
-        for name, model, track, tracker in (
-                ("palm detector every frame", "mediapipe-hand", False, default),
-                ("tracking as before", "mediapipe-hand", True, dict(redetect_every=16, search_every=1)),
-                ("tracking (default)", "mediapipe-hand", True, default),
-                ("tracking, lite model", "mediapipe-hand-lite", True, default),
-                ("tracking, int8 model", "mediapipe-hand-int8", True, default)):
-            detector = hand_keypoint_detector(model, device="cpu", threads=1)
+        for name, model, track, tracker, tiles in (
+                ("palm detector every frame", "mediapipe-hand", False, default, False),
+                ("tracking as before", "mediapipe-hand", True, dict(redetect_every=16, search_every=1), False),
+                ("tracking (default)", "mediapipe-hand", True, default, False),
+                ("tracking, palm tiles", "mediapipe-hand", True, default, True),
+                ("tracking, lite model", "mediapipe-hand-lite", True, default, False),
+                ("tracking, int8 model", "mediapipe-hand-int8", True, default, False)):
+            detector = Detector(load_model(model, device="cpu", threads=1),
+                                palm=PalmDetector(device="cpu", threads=1, tiles=tiles))
             found, wall = timed(lambda: detect_take(take, detector, track=track, **tracker))
             rates[name] = frames / wall
             in_view, errors[name] = frame_errors(found, truth)

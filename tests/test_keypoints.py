@@ -13,6 +13,7 @@ from onnx import TensorProto, helper, numpy_helper
 from dataset_tools.keypoints import boxes as bx
 from dataset_tools.keypoints import hand_keypoint_detector
 from dataset_tools.keypoints.decoding import decode_heatmaps, decode_simcc
+from dataset_tools.keypoints.palm import square_tiles
 from manus_core.cameras import CameraRig
 from manus_core.errors import ModelError, ModelNotInstalledError
 
@@ -306,3 +307,15 @@ def test_crop_keeps_dtype_and_fills_borders() -> None:
     crops, _ = bx.crop(image, np.array([[4.5, 4.5, 40, 40, 0.3]]), 16, 16)
     assert crops.dtype == np.uint8 and crops.shape == (1, 16, 16, 3)
     assert (crops == 200).all()  # replicated border: no black frame around small images
+
+
+def test_square_tiles_cover_the_frame_with_half_a_side_of_overlap() -> None:
+    for width, height, count in ((320, 180, 3), (1280, 720, 3), (640, 480, 2), (180, 320, 3), (200, 200, 1)):
+        corners = square_tiles(width, height)
+        side = min(width, height)
+        assert len(corners) == count, (width, height, corners)
+        ends = corners + side
+        assert (corners >= 0).all() and (ends[:, 0] <= width).all() and (ends[:, 1] <= height).all()
+        assert ends[:, 0].max() == width and ends[:, 1].max() == height
+        along = corners[:, 0] if width >= height else corners[:, 1]
+        assert (np.diff(along) <= side / 2).all(), corners

@@ -22,11 +22,12 @@ class Detector:
     """
 
     def __init__(self, model: KeypointModel, batch_size: int = 64, orientations: int = 4,
-                 palm: PalmDetector | None = None) -> None:
+                 palm: PalmDetector | None = None, palm_tiles: bool = False) -> None:
         self.model = model
         self.batch_size = int(batch_size)
         self.orientations = int(orientations)
         self._palm = palm
+        self.palm_tiles = palm_tiles
 
     @property
     def name(self) -> str:
@@ -102,7 +103,7 @@ class Detector:
         rect; with its angle, detect_many() crops exactly that rect for the MediaPipe model.
         """
         if self._palm is None:
-            self._palm = PalmDetector(device=self.model.session.device)
+            self._palm = PalmDetector(device=self.model.session.device, tiles=self.palm_tiles)
         self._palm.min_score = min_score
         boxes, angles = [], []
         for rects, _ in self._palm.detect(list(images), max_hands=max_hands):
@@ -143,10 +144,11 @@ def _check_image(image: np.ndarray) -> None:
 
 
 def hand_keypoint_detector(name: str | Path = "mediapipe-hand", device: str = "auto",
-                           threads: int | None = None, batch_size: int = 64) -> Detector:
+                           threads: int | None = None, batch_size: int = 64, palm_tiles: bool = False) -> Detector:
     """A Detector for `mediapipe-hand` (full), `mediapipe-hand-lite`, `mediapipe-hand-int8` (after
     `models quantize`), or a SimCC/heatmap spec (.toml).
 
-    device: auto (CUDA when onnxruntime has it, else CPU), cpu or cuda.
+    device: auto (CUDA when onnxruntime has it, else CPU), cpu or cuda. palm_tiles: the palm
+    detector also looks at square tiles of wide frames (palm.PalmDetector).
     """
-    return Detector(load_model(name, device=device, threads=threads), batch_size=batch_size)
+    return Detector(load_model(name, device=device, threads=threads), batch_size=batch_size, palm_tiles=palm_tiles)

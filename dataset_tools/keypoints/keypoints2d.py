@@ -67,9 +67,12 @@ class TakeKeypoints:
     attrs: dict = field(default_factory=dict)
 
 
-def box_source(boxes: str | Path | None, track: bool) -> str:
-    """keypoints2d.h5's `box_source`: file:PATH, palm-detector+tracking or palm-detector."""
-    return f"file:{boxes}" if boxes else "palm-detector+tracking" if track else "palm-detector"
+def box_source(boxes: str | Path | None, track: bool, palm_tiles: bool = False) -> str:
+    """keypoints2d.h5's `box_source`: file:PATH, palm-detector+tracking or palm-detector (with
+    +tiles where the palm detector looked at square tiles too)."""
+    if boxes:
+        return f"file:{boxes}"
+    return ("palm-detector+tiles" if palm_tiles else "palm-detector") + ("+tracking" if track else "")
 
 
 def load_boxes(path: str | Path, take: Take, cameras: Sequence[str]) -> dict[str, np.ndarray]:
@@ -144,9 +147,10 @@ class DetectTask:
     boxes: np.ndarray | None   # (stop - start, 5) of these frames; None: the palm detector
     track: bool = True         # with the palm detector: track from frame to frame (track_frames)
     redetect_every: int = REDETECT_EVERY
+    palm_tiles: bool = False   # the palm detector also looks at square tiles of wide frames
 
 
-_DETECTORS: dict[tuple[str, str], Detector] = {}
+_DETECTORS: dict[tuple[str, str, bool], Detector] = {}
 
 
 def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
@@ -154,12 +158,13 @@ def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
     loaded once per process."""
     from .detector import hand_keypoint_detector
 
-    if (task.model, task.device) not in _DETECTORS:
-        _DETECTORS[task.model, task.device] = hand_keypoint_detector(task.model, device=task.device)
+    which = task.model, task.device, task.palm_tiles
+    if which not in _DETECTORS:
+        _DETECTORS[which] = hand_keypoint_detector(task.model, device=task.device, palm_tiles=task.palm_tiles)
     kp, used = _empty(task.stop - task.start)
     # indices within the task, which starts on a whole redetection period (detect_take_tasks)
     frames = ((k - task.start, image) for k, image in Take(task.take).iter_frames(task.camera, task.start, task.stop))
-    _detect_frames(_DETECTORS[task.model, task.device], frames, task.boxes, task.chunk, task.min_score, task.track,
+    _detect_frames(_DETECTORS[which], frames, task.boxes, task.chunk, task.min_score, task.track,
                    kp, used, redetect_every=task.redetect_every)
     return kp, used
 
@@ -167,7 +172,7 @@ def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
 def detect_take_tasks(take: Take, model: str, device: str = "auto", boxes: dict[str, np.ndarray] | None = None,
                       cameras: Sequence[str] | None = None, chunk: int = 16, min_score: float = 0.5,
                       frames_per_task: int = 256, track: bool = True,
-                      redetect_every: int = REDETECT_EVERY) -> list[DetectTask]:
+                      redetect_every: int = REDETECT_EVERY, palm_tiles: bool = False) -> list[DetectTask]:
     """A take's detection split by camera and frame range: whole chunks per task (when tracking,
     whole redetection periods), so that every network call and every run of the tracker sees the
     frames it would in one pass over the camera. Frames past the end of a video cut short are in no
@@ -175,7 +180,7 @@ def detect_take_tasks(take: Take, model: str, device: str = "auto", boxes: dict[
     unit = redetect_every if track and boxes is None else chunk
     span = max(1, frames_per_task // unit) * unit
     return [DetectTask(str(take.path.resolve()), cam, start, min(start + span, n), model, device, chunk, min_score,
-                       None if boxes is None else boxes[cam][start:start + span], track, redetect_every)
+                       None if boxes is None else boxes[cam][start:start + span], track, redetect_every, palm_tiles)
             for cam in (cameras or take.cameras) for n in (take.readable_frames(cam),) for start in range(0, n, span)]
 
 

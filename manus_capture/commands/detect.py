@@ -48,14 +48,18 @@ from .cluster import cluster_options
               help="When tracking, the palm detector looks afresh at every this many frames of a camera.")
 @click.option("--min-score", type=click.FloatRange(0, 1), default=0.5, show_default=True,
               help="Palm detector score threshold.")
+@click.option("--palm-tiles", is_flag=True,
+              help="The palm detector also looks at square tiles of each wide frame: finds hands that span "
+                   "few pixels (twice as often at 20-30 px), at four network passes a look instead of one "
+                   "(docs/keypoints.md).")
 @cluster_options("by camera and frame range")
 @click.option("--frames-per-task", type=click.IntRange(1), default=256, show_default=True,
               help="Frames of one camera per task (rounded to whole chunks; when tracking, to whole "
                    "--redetect-every periods).")
 @click.option("--force", is_flag=True, help="Overwrite an existing output file.")
 def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str | None, output: Path | None,
-            device: str, chunk: int, track: bool, redetect_every: int, min_score: float, workers: int,
-            scheduler: str | None, frames_per_task: int, force: bool) -> None:
+            device: str, chunk: int, track: bool, redetect_every: int, min_score: float, palm_tiles: bool,
+            workers: int, scheduler: str | None, frames_per_task: int, force: bool) -> None:
     """Detect 2D hand keypoints (21 joints, MediaPipe order) in every view of TAKE.
 
     Writes TAKE/keypoints2d.h5: per camera, keypoints (F,21,3) [x, y, confidence] indexed by the
@@ -75,13 +79,14 @@ def command(take: Path, model_name: str, boxes_path: Path | None, cameras: str |
     total = sum(tk.readable_frames(c) for c in cams)
     start = time.perf_counter()
     model = str(Path(model_name).resolve()) if model_name.endswith(".toml") else model_name  # for other processes
-    tasks = detect_take_tasks(tk, model, device, boxes, cams, chunk, min_score, frames_per_task, track, redetect_every)
+    tasks = detect_take_tasks(tk, model, device, boxes, cams, chunk, min_score, frames_per_task, track, redetect_every,
+                              palm_tiles)
     with Bars(unit="frame") as bars:
         result = detect_tasks(tk, tasks, workers, scheduler, progress=bars)
     elapsed = time.perf_counter() - start
     write_keypoints_h5(output, TakeKeypoints(
         result, detector.name, str(detector.model.session.path),
-        box_source(boxes_path, track),
+        box_source(boxes_path, track, palm_tiles),
         {"take": str(tk.path), "software": f"manus-capture {__version__}",
          "providers": ",".join(detector.providers)}))
     found = sum(int((r.keypoints[:, 0, 2] > 0.5).sum()) for r in result.values())

@@ -151,7 +151,7 @@ def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
     """`make demo` annotates with the ONNX detector on the frames, and the bones come from its keypoints
     of the hand take. Measured on this session (12 cameras at 320x180): a hand found in 26 % of the
     grasp's views, its joints triangulated 9.1 mm and fitted 9.4 mm from the truth, finger angles
-    12.0 deg RMS, the bones 10.1 mm short at worst (on `make demo`'s session MediaPipe's landmarks
+    12.0 deg RMS, the bones 10.1 mm off at worst (on `make demo`'s session MediaPipe's landmarks
     span 5-9 % less than the true joints; on the real photos of test_keypoints_real they do not); the
     simulated detector's keypoints of the same takes are fitted 3.1 mm off, 8.4 deg
     (test_stages_agree_with_the_simulators_truth). The bounds give the detector's figures a factor 2."""

@@ -65,6 +65,7 @@ class AnnotateOptions:
     keypoints: str = "auto"
     model: str = "mediapipe-hand"
     device: str = "auto"
+    palm_tiles: bool = False           # detecting: the palm detector also looks at square tiles
     sim_noise_px: float = 2.0
     sim_outlier_rate: float = 0.1
     sim_dropout_rate: float = 0.0
@@ -173,12 +174,13 @@ def _keypoints_file(take: Take, frame_index: np.ndarray) -> tuple[np.ndarray, st
 
 
 def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
-    detector = hand_keypoint_detector(options.model, device=options.device)
+    detector = hand_keypoint_detector(options.model, device=options.device, palm_tiles=options.palm_tiles)
     result = detect_take(take, detector)
     write_keypoints_h5(take.path / "keypoints2d.h5", TakeKeypoints(
-        result, detector.name, str(detector.model.session.path), box_source(None, track=True),
+        result, detector.name, str(detector.model.session.path), box_source(None, True, options.palm_tiles),
         {"take": str(take.path), "software": software_version(), "providers": ",".join(detector.providers)}))
-    return _gather([result[c].keypoints for c in take.cameras], frame_index), f"detect:{options.model}"
+    tiles = "+palm-tiles" if options.palm_tiles else ""
+    return _gather([result[c].keypoints for c in take.cameras], frame_index), f"detect:{options.model}{tiles}"
 
 
 def _keypoints_simulated(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
@@ -320,6 +322,8 @@ def annotate_inputs(take: Take, cameras: Sequence[str], calibration: dict, optio
         inputs["keypoints_file_sha256"] = file_sha256(take.path / "keypoints2d.h5")
     elif mode == "detect":
         inputs["keypoint_model"] = options.model
+        if options.palm_tiles:
+            inputs["palm_tiles"] = True
     elif mode == "simulated":
         inputs["keypoint_simulation"] = {"noise_px": options.sim_noise_px, "outlier_rate": options.sim_outlier_rate,
                                          "dropout_rate": options.sim_dropout_rate, "seed": options.sim_seed}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import h5py
 import numpy as np
 import pytest
 from test_keypoints_take import make_take
@@ -101,6 +102,15 @@ def test_detect_keypoints_on_rendered_frames_triangulate_near_the_truth(installe
     assert np.median(error_3d) < 0.009 and np.percentile(error_3d, 90) < 0.015, np.percentile(error_3d, [50, 90])
     fitted = np.linalg.norm(ann.fitted_joints(False) - truth, axis=-1)
     assert np.median(fitted) < 0.008, np.median(fitted)
+
+    # the palm detector's tiles are an input of the annotation: asked for, the take is detected and
+    # annotated again, and both files say so
+    summary = annotate([take], root / "calib", out, AnnotateOptions(keypoints="detect", device="cpu", palm_tiles=True),
+                       bones=rendered["bones"], groups=groups)
+    assert summary.annotated == ["S/grasp"] and "S/grasp" in summary.redone, summary
+    assert read_dataset(out)["S/grasp"].attrs["keypoint_source"] == "detect:mediapipe-hand+palm-tiles"
+    with h5py.File(take / "keypoints2d.h5") as f:
+        assert f.attrs["box_source"] == "palm-detector+tiles+tracking"
 
 
 def test_detect_split_over_processes_gives_the_single_process_keypoints(installed, rendered, tmp_path):

@@ -9,6 +9,11 @@ from pathlib import Path
 # top of that thrash (the splatting tests ran 17x slower). Set before any test imports torch.
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+# The commands still give torch a thread per core (`--threads`), so with both workers busy OpenMP's
+# threads outnumber the cores; spinning at its barriers, each waits on threads that are not running:
+# `refine` of the test demo's grasp took 44.5 s beside another 2-thread torch process, 15.0 s with
+# the threads sleeping instead (12.3 s alone; alone, sleeping costs a quarter more, so only here).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import pytest
 

@@ -49,9 +49,9 @@ from .cluster import cluster_options
 @click.option("--min-score", type=click.FloatRange(0, 1), default=0.5, show_default=True,
               help="Palm detector score threshold.")
 @click.option("--palm-tiles", is_flag=True,
-              help="The palm detector also looks at square tiles of each wide frame: finds hands that span "
-                   "few pixels (twice as often at 20-30 px), at four network passes a look instead of one "
-                   "(docs/keypoints.md).")
+              help="The palm detector also looks at square tiles of each wide frame: small hands are found "
+                   "more often (in 74 % of the demo's views that see the hand, against 39 %), at four network "
+                   "passes a look instead of one (docs/keypoints.md).")
 @cluster_options("by camera and frame range")
 @click.option("--frames-per-task", type=click.IntRange(1), default=256, show_default=True,
               help="Frames of one camera per task (rounded to whole chunks; when tracking, to whole "

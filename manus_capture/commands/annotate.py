@@ -53,8 +53,8 @@ from .cluster import cluster_options
                    "are the same. Their masks, paint and contacts are kept.")
 def command(takes: tuple[Path, ...], calib: Path, output: Path, keypoints: str, model: str, device: str,
             palm_tiles: bool, bones: Path | None, workers: int, scheduler: str | None, sim_noise_px: float,
-            sim_outliers: float, sim_seed: int, threshold_px: float, min_cutoff: float, beta: float, cameras: str | None,
-            force: bool) -> None:
+            sim_outliers: float, sim_seed: int, threshold_px: float, min_cutoff: float, beta: float,
+            cameras: str | None, force: bool) -> None:
     """Annotate TAKES into a dataset file: frame groups, 2D keypoints, triangulation, the subject's
     bone lengths, inverse kinematics on the 26-DOF hand, 1-euro filter (docs/annotate.md).
 

@@ -4,7 +4,7 @@
     python3 benchmarks/bench_refine.py --device cuda            # adds gsplat's rasterizer beside ours
 
 What `manus-capture refine` does to the demo's grasp take (60 frame groups, 24 cameras, windows of
-about 104x96 pixels around the hand at 320x180, MANUS-Hand as the builder makes it: 5.6k surfels),
+about 104x96 pixels around the hand at 320x180, MANUS-Hand as the builder makes it: 6.7k surfels),
 on synthetic views: the builder's surfel hand is posed along a grasp-like motion, rendered into
 `--cameras` cameras around it at the window size (the renders are the images, alpha > 0.5 the
 masks, its projected joints with 2 px of noise the keypoints), and the poses, perturbed by 5 deg,

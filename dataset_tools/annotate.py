@@ -30,6 +30,7 @@ import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -43,10 +44,17 @@ from manus_core.skeleton import HandSkeleton
 from manus_core.take import Take
 
 from .calibration.formats import load_cameras
+from .cross_view import recover_views
 from .hand.bones import bone_lengths_from_samples, bone_samples, estimate_bone_lengths, load_subject, save_subject
 from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
-from .keypoints import hand_keypoint_detector
-from .keypoints.keypoints2d import TakeKeypoints, box_source, detect_take, read_keypoints_h5, write_keypoints_h5
+from .keypoints.keypoints2d import (
+    TakeKeypoints,
+    box_source,
+    cached_detector,
+    detect_take,
+    read_keypoints_h5,
+    write_keypoints_h5,
+)
 from .one_euro import one_euro
 from .simulated_detector import SimulatedDetector, simulated_take_keypoints
 from .sync import GROUPS_FILE, frame_groups
@@ -66,6 +74,7 @@ class AnnotateOptions:
     model: str = "mediapipe-hand"
     device: str = "auto"
     palm_tiles: bool = False           # detecting: the palm detector also looks at square tiles
+    cross_view: bool = True            # detecting: the views it missed, from the hand the others see
     sim_noise_px: float = 2.0
     sim_outlier_rate: float = 0.1
     sim_dropout_rate: float = 0.0
@@ -174,7 +183,7 @@ def _keypoints_file(take: Take, frame_index: np.ndarray) -> tuple[np.ndarray, st
 
 
 def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
-    detector = hand_keypoint_detector(options.model, device=options.device, palm_tiles=options.palm_tiles)
+    detector = cached_detector(options.model, options.device, options.palm_tiles)
     result = detect_take(take, detector)
     write_keypoints_h5(take.path / "keypoints2d.h5", TakeKeypoints(
         result, detector.name, str(detector.model.session.path), box_source(None, True, options.palm_tiles),
@@ -231,7 +240,17 @@ class TakeTask:
     groups: Groups | None = None
 
 
-def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, str, str]:
+class _Prepared(NamedTuple):
+    take: Take
+    frame_ns: np.ndarray
+    frame_index: np.ndarray    # (T,C) of the task's cameras
+    keypoints: np.ndarray      # (T,C,21,3)
+    source: str
+    grouping: str
+    recovered: int             # views the cross-view step filled in
+
+
+def _prepare(task: TakeTask) -> _Prepared:
     take = Take(task.path)
     if task.groups is not None:
         frame_ns, frame_index = (np.asarray(a, np.int64) for a in task.groups)
@@ -244,13 +263,18 @@ def _prepare(task: TakeTask) -> tuple[Take, np.ndarray, np.ndarray, np.ndarray, 
         frame_ns, frame_index, grouping = groups.frame_ns, groups.frame_index, groups.description
     kp, source = take_keypoints(take, frame_index, task.options)
     used = [take.cameras.index(c) for c in task.cameras]
-    return take, frame_ns, frame_index[:, used], kp[:, used], source, grouping
+    frame_index, kp, recovered = frame_index[:, used], kp[:, used], 0
+    if task.options.cross_view and keypoint_mode(take, task.options) == "detect":
+        o = task.options
+        kp, recovered = recover_views(take, task.rig, list(task.cameras), kp, frame_index,
+                                      cached_detector(o.model, o.device, o.palm_tiles), o.threshold_px, o.min_views)
+        source += "+cross-view"
+    return _Prepared(take, frame_ns, frame_index, kp, source, grouping, recovered)
 
 
 def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float]:
     """Per-frame bone lengths (T,20) of a hand take and the error threshold used (for the subject)."""
-    _, _, _, kp, _, _ = _prepare(task)
-    X, err = triangulate_frames(task.rig, kp, threshold_px=task.options.threshold_px,
+    X, err = triangulate_frames(task.rig, _prepare(task).keypoints, threshold_px=task.options.threshold_px,
                                 min_views=task.options.min_views)
     return bone_samples(X, err)
 
@@ -258,7 +282,7 @@ def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float]:
 def annotate_take(task: TakeTask) -> TakeAnnotation:
     """The whole stage for one take (runs in a worker)."""
     try:
-        take, frame_ns, frame_index, kp, source, grouping = _prepare(task)
+        take, frame_ns, frame_index, kp, source, grouping, recovered = _prepare(task)
         result = annotate_arrays(task.rig, kp, frame_ns, task.bones, task.options)
     except (AnnotateError, BoneLengthError) as exc:
         raise AnnotateError(f"{task.path}: {exc}") from None
@@ -266,7 +290,7 @@ def annotate_take(task: TakeTask) -> TakeAnnotation:
     flags[(frame_index < 0).any(1)] |= FLAGS["incomplete_group"]
     attrs = {"kind": str(take.meta.get("kind", "")), "take": str(take.path), "status": "complete",
              "skeleton": skeleton_description(HandSkeleton(result["bone_lengths"])),
-             "software": software_version(), "keypoint_source": source,
+             "software": software_version(), "keypoint_source": source, "views_recovered": recovered,
              "bone_source": task.bone_source if task.bones is not None else "take", "filter": task.options.filter,
              "frame_groups": grouping, "cameras_left_out": [c for c in take.cameras if c not in task.cameras],
              **task.calibration, **provenance_attrs("annotate", task.inputs)}
@@ -324,6 +348,8 @@ def annotate_inputs(take: Take, cameras: Sequence[str], calibration: dict, optio
         inputs["keypoint_model"] = options.model
         if options.palm_tiles:
             inputs["palm_tiles"] = True
+        if options.cross_view:
+            inputs["cross_view"] = True
     elif mode == "simulated":
         inputs["keypoint_simulation"] = {"noise_px": options.sim_noise_px, "outlier_rate": options.sim_outlier_rate,
                                          "dropout_rate": options.sim_dropout_rate, "seed": options.sim_seed}

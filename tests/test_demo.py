@@ -149,12 +149,14 @@ def test_demo_reads_no_truth_unless_an_ablation_is_named(tmp_path, monkeypatch):
 
 def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
     """`make demo` annotates with the ONNX detector on the frames, and the bones come from its keypoints
-    of the hand take. Measured on this session (12 cameras at 320x180): a hand found in 26 % of the
-    grasp's views, its joints triangulated 9.1 mm and fitted 9.4 mm from the truth, finger angles
-    12.0 deg RMS, the bones 10.1 mm off at worst (on `make demo`'s session MediaPipe's landmarks
-    span 5-9 % less than the true joints; on the real photos of test_keypoints_real they do not); the
-    simulated detector's keypoints of the same takes are fitted 3.1 mm off, 8.4 deg
-    (test_stages_agree_with_the_simulators_truth). The bounds give the detector's figures a factor 2."""
+    of the hand take; annotate's cross-view step looks again where the palm detector found nothing.
+    Measured on this session (12 cameras at 320x180), in brackets without the cross-view step: a
+    hand found in 50 % of the grasp's views (26 %), its joints triangulated 8.2 mm (9.1) and fitted
+    8.9 mm (9.4) from the truth, finger angles 9.5 deg RMS (12.0), the bones 10.8 mm (10.1) off at
+    worst (on `make demo`'s session MediaPipe's landmarks span 5-9 % less than the true joints; on
+    the real photos of test_keypoints_real they do not); the simulated detector's keypoints of the
+    same takes are fitted 3.1 mm off, 8.4 deg (test_stages_agree_with_the_simulators_truth). The
+    bounds give the detector's figures a factor 2."""
     out, summary, _ = demo
     assert stage(summary, "annotate")["keypoints"] == "simulated"
     run = tmp_path / "run"
@@ -166,9 +168,10 @@ def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
         assert (run / "session" / name / "keypoints2d.h5").is_file(), name
     with h5py.File(run / "DATASET.h5") as f:
         attrs = f["session/03-grasp1"].attrs
-        assert attrs["keypoint_source"].startswith("detect:") and "from 01-hand" in attrs["bone_source"], dict(attrs)
-    assert figures["views_with_hand"] > 0.13 and figures["fitted_mpjpe_mm"] < 19, figures
-    assert figures["finger_angle_rms_deg"] < 24 and figures["bone_length_err_mm"] < 20, figures
+        assert attrs["keypoint_source"] == "detect:mediapipe-hand+cross-view", dict(attrs)
+        assert attrs["views_recovered"] > 0 and "from 01-hand" in attrs["bone_source"], dict(attrs)
+    assert figures["views_with_hand"] > 0.25 and figures["fitted_mpjpe_mm"] < 18, figures
+    assert figures["finger_angle_rms_deg"] < 19 and figures["bone_length_err_mm"] < 22, figures
 
 
 def test_a_demo_run_again_estimates_the_bones_again(tmp_path):

@@ -36,7 +36,7 @@ from manus_core.progress import Progress, silent
 from manus_core.take import Take
 
 from . import boxes as bx
-from .detector import Detector
+from .detector import Detector, hand_keypoint_detector
 from .models import JOINT_NAMES, NUM_JOINTS
 
 FORMAT = "manus-capture keypoints2d"
@@ -153,19 +153,21 @@ class DetectTask:
 _DETECTORS: dict[tuple[str, str, bool], Detector] = {}
 
 
-def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
-    """(keypoints (n,21,3), boxes and angles used (n,5)) of a DetectTask's frames; the detector is
-    loaded once per process."""
-    from .detector import hand_keypoint_detector
-
-    which = task.model, task.device, task.palm_tiles
+def cached_detector(model: str, device: str = "auto", palm_tiles: bool = False) -> Detector:
+    """The process's Detector of these settings, loaded on the first call (a worker runs many tasks)."""
+    which = model, device, palm_tiles
     if which not in _DETECTORS:
-        _DETECTORS[which] = hand_keypoint_detector(task.model, device=task.device, palm_tiles=task.palm_tiles)
+        _DETECTORS[which] = hand_keypoint_detector(model, device=device, palm_tiles=palm_tiles)
+    return _DETECTORS[which]
+
+
+def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
+    """(keypoints (n,21,3), boxes and angles used (n,5)) of a DetectTask's frames."""
     kp, used = _empty(task.stop - task.start)
     # indices within the task, which starts on a whole redetection period (detect_take_tasks)
     frames = ((k - task.start, image) for k, image in Take(task.take).iter_frames(task.camera, task.start, task.stop))
-    _detect_frames(_DETECTORS[which], frames, task.boxes, task.chunk, task.min_score, task.track,
-                   kp, used, redetect_every=task.redetect_every)
+    _detect_frames(cached_detector(task.model, task.device, task.palm_tiles), frames, task.boxes, task.chunk,
+                   task.min_score, task.track, kp, used, redetect_every=task.redetect_every)
     return kp, used
 
 

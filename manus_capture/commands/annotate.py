@@ -31,6 +31,9 @@ from .cluster import cluster_options
 @click.option("--palm-tiles", is_flag=True,
               help="When detecting: the palm detector also looks at square tiles of each wide frame (as "
                    "`detect --palm-tiles`: small hands found more often, slower).")
+@click.option("--cross-view/--no-cross-view", default=True, show_default=True,
+              help="When detecting: where the palm detector found no hand in a view, look for it where the "
+                   "hand the other views triangulate projects (docs/annotate.md).")
 @click.option("--bones", type=click.Path(path_type=Path), default=None,
               help="A subject file (subjects/SUBJECT.json) to use for every take instead of estimating.")
 @cluster_options("by take")
@@ -52,19 +55,20 @@ from .cluster import cluster_options
               help="Recompute takes already in the output (or saved by an interrupted run) even when their inputs "
                    "are the same. Their masks, paint and contacts are kept.")
 def command(takes: tuple[Path, ...], calib: Path, output: Path, keypoints: str, model: str, device: str,
-            palm_tiles: bool, bones: Path | None, workers: int, scheduler: str | None, sim_noise_px: float,
-            sim_outliers: float, sim_seed: int, threshold_px: float, min_cutoff: float, beta: float,
-            cameras: str | None, force: bool) -> None:
+            palm_tiles: bool, cross_view: bool, bones: Path | None, workers: int, scheduler: str | None,
+            sim_noise_px: float, sim_outliers: float, sim_seed: int, threshold_px: float, min_cutoff: float,
+            beta: float, cameras: str | None, force: bool) -> None:
     """Annotate TAKES into a dataset file: frame groups, 2D keypoints, triangulation, the subject's
     bone lengths, inverse kinematics on the 26-DOF hand, 1-euro filter (docs/annotate.md).
 
     Takes already in OUTPUT, or finished by an interrupted run, are kept when every input that made
     them is the same (the take's frames, calibration, cameras, keypoints, frame groups, bones,
-    settings), and redone otherwise, saying why. Cameras the calibration lacks are left out. Hand takes of a session give the subject's bone lengths, saved as
-    SESSION/subjects/SUBJECT.json; give them in the same run or annotate them first.
+    settings), and redone otherwise, saying why. Cameras the calibration lacks are left out. Hand
+    takes of a session give the subject's bone lengths, saved as SESSION/subjects/SUBJECT.json;
+    give them in the same run or annotate them first.
     """
     options = AnnotateOptions(keypoints=keypoints, model=model, device=device, palm_tiles=palm_tiles,
-                              sim_noise_px=sim_noise_px,
+                              cross_view=cross_view, sim_noise_px=sim_noise_px,
                               sim_outlier_rate=sim_outliers, sim_seed=sim_seed, threshold_px=threshold_px,
                               min_cutoff=min_cutoff, beta=beta)
     chosen = [c.strip() for c in cameras.split(",") if c.strip()] if cameras is not None else None

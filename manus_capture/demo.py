@@ -189,7 +189,9 @@ class Demo:
         tri = np.linalg.norm(grasp.keypoints3d - truth["joints3d"], axis=-1)
         fitted, angles = pose_errors(grasp.bone_lengths, grasp.joint_angles, truth)
         found = (grasp.keypoints2d[..., 2] > 0).any(axis=-1)[grasp.frame_index >= 0]
-        return {"keypoints": keypoints, "views_with_hand": float(found.mean()), "frames": len(grasp.frame_ns),
+        # views_recovered: of those, the views annotate's cross-view step found (docs/annotate.md)
+        return {"keypoints": keypoints, "views_with_hand": float(found.mean()),
+                "views_recovered": int(grasp.attrs.get("views_recovered", 0)), "frames": len(grasp.frame_ns),
                 "triangulated_mpjpe_mm": 1000 * float(np.nanmean(tri)),
                 "fitted_mpjpe_mm": fitted, "finger_angle_rms_deg": angles,
                 "bone_length_err_mm": 1000 * float(np.abs(grasp.bone_lengths - truth["bone_lengths"]).max())}

@@ -170,6 +170,7 @@ def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
         attrs = f["session/03-grasp1"].attrs
         assert attrs["keypoint_source"] == "detect:mediapipe-hand+cross-view", dict(attrs)
         assert attrs["views_recovered"] > 0 and "from 01-hand" in attrs["bone_source"], dict(attrs)
+        assert figures["views_recovered"] == attrs["views_recovered"], figures
     assert figures["views_with_hand"] > 0.25 and figures["fitted_mpjpe_mm"] < 18, figures
     assert figures["finger_angle_rms_deg"] < 19 and figures["bone_length_err_mm"] < 22, figures
 

@@ -266,8 +266,8 @@ def _prepare(task: TakeTask) -> _Prepared:
     frame_index, kp, recovered = frame_index[:, used], kp[:, used], 0
     if task.options.cross_view and keypoint_mode(take, task.options) == "detect":
         o = task.options
-        kp, recovered = recover_views(take, task.rig, list(task.cameras), kp, frame_index,
-                                      cached_detector(o.model, o.device, o.palm_tiles), o.threshold_px, o.min_views)
+        kp, recovered = recover_views(take, task.rig, kp, frame_index, cached_detector(o.model, o.device, o.palm_tiles),
+                                      o.threshold_px, o.min_views)
         source += "+cross-view"
     return _Prepared(take, frame_ns, frame_index, kp, source, grouping, recovered)
 
@@ -468,7 +468,8 @@ def _session_bones(todo, every, bones, make_task, workers, scheduler, summary) -
             out[session] = (load_subject(file).bone_lengths, f"subject:{file.relative_to(session.parent)}")
             summary.subjects[session.name] = str(file)
             continue
-        hand = [make_task(t, k) for t, k in every if t.path.resolve().parent == session and t.meta.get("kind") == "hand"]
+        hand = [make_task(t, k) for t, k in every
+                if t.path.resolve().parent == session and t.meta.get("kind") == "hand"]
         if hand:
             pending[session] = hand
     if not pending:

@@ -52,11 +52,11 @@ def missing_views(keypoints2d: np.ndarray, frame_index: np.ndarray, min_score: f
     return ~found & (np.asarray(frame_index) >= 0)
 
 
-def recover_views(take: Take, rig: CameraRig, cameras: list[str], keypoints2d: np.ndarray, frame_index: np.ndarray,
-                  detector: Detector, threshold_px: float, min_views: int,
+def recover_views(take: Take, rig: CameraRig, keypoints2d: np.ndarray, frame_index: np.ndarray, detector: Detector,
+                  threshold_px: float, min_views: int,
                   options: CrossViewOptions = CrossViewOptions()) -> tuple[np.ndarray, int]:
-    """Keypoints (T,C,21,3) of `cameras` (rig's order) with the views the detector missed filled in
-    where the others' hand shows it (module doc), and how many views were filled in.
+    """Keypoints (T,C,21,3) of the rig's cameras (its order) with the views the detector missed
+    filled in where the others' hand shows it (module doc), and how many views were filled in.
 
     frame_index (T,C): each group's frame of each camera (-1: none). threshold_px and min_views
     are the triangulation's (AnnotateOptions').
@@ -73,7 +73,7 @@ def recover_views(take: Take, rig: CameraRig, cameras: list[str], keypoints2d: n
     inside = (np.isfinite(uv).all(-1) & (uv >= -0.5).all(-1) & (uv <= size - 0.5).all(-1)).sum(-1)  # (C,T)
     todo &= inside.T >= options.min_inside
     recovered = 0
-    for c, cam in enumerate(cameras):
+    for c, cam in enumerate(rig.ids):
         rows = np.flatnonzero(todo[:, c])
         if not len(rows):
             continue

@@ -26,7 +26,6 @@ same now; otherwise it is redone and the summary says why. Uncalibrated cameras 
 
 from __future__ import annotations
 
-import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,65 +42,19 @@ from manus_core.session import load_session
 from manus_core.skeleton import HandSkeleton
 from manus_core.take import Take
 
+from .annotate_options import AnnotateOptions
 from .calibration.formats import load_cameras
 from .cross_view import recover_views
 from .hand.bones import bone_lengths_from_samples, bone_samples, estimate_bone_lengths, load_subject, save_subject
 from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
-from .keypoints.keypoints2d import (
-    TakeKeypoints,
-    box_source,
-    cached_detector,
-    detect_take,
-    read_keypoints_h5,
-    write_keypoints_h5,
-)
+from .keypoints.keypoints2d import cached_detector
 from .one_euro import one_euro
-from .simulated_detector import SimulatedDetector, simulated_take_keypoints
 from .sync import GROUPS_FILE, frame_groups
+from .take_keypoints import keypoint_mode, take_keypoints
 from .tasks import run_tasks
 from .triangulation import triangulate_frames
 
 Groups = tuple[np.ndarray, np.ndarray]  # frame_ns (T,), frame_index (T,C)
-
-
-@dataclass(frozen=True)
-class AnnotateOptions:
-    """Settings of the stage. keypoints: where 2D keypoints come from: "auto" (TAKE/keypoints2d.h5
-    when it exists, else the ONNX detector), "file", "detect", or "simulated": the simulated
-    detector on a simulated take's ground truth, an ablation that is only ever used when named."""
-
-    keypoints: str = "auto"
-    model: str = "mediapipe-hand"
-    device: str = "auto"
-    palm_tiles: bool = False           # detecting: the palm detector also looks at square tiles
-    cross_view: bool = True            # detecting: the views it missed, from the hand the others see
-    sim_noise_px: float = 2.0
-    sim_outlier_rate: float = 0.1
-    sim_dropout_rate: float = 0.0
-    sim_seed: int = 0
-    threshold_px: float = 10.0
-    min_views: int = 2
-    min_joints: int = 6
-    ik_poor_m: float = 0.01
-    min_cutoff: float = 1.0
-    beta: float = 10.0
-    beta_translation: float = 300.0
-    d_cutoff: float = 1.0
-
-    def __post_init__(self) -> None:
-        if self.keypoints not in ("auto", "file", "simulated", "detect"):
-            raise AnnotateError(f"keypoints = {self.keypoints!r}; use auto, file, simulated or detect")
-
-    @property
-    def filter(self) -> dict:
-        return {"min_cutoff": self.min_cutoff, "beta": self.beta, "beta_translation": self.beta_translation,
-                "d_cutoff": self.d_cutoff}
-
-    @property
-    def settings(self) -> dict:
-        """The settings the results depend on, besides the keypoint source."""
-        return {"threshold_px": self.threshold_px, "min_views": self.min_views, "min_joints": self.min_joints,
-                "ik_poor_m": self.ik_poor_m, **self.filter}
 
 
 # --- the numeric core ------------------------------------------------------------------------------
@@ -156,72 +109,6 @@ def annotate_arrays(rig: CameraRig, keypoints2d: np.ndarray, frame_ns: np.ndarra
             "flags": flags, "bone_lengths": np.asarray(bone_lengths, np.float64), "fitted": fitted}
 
 
-# --- keypoints of a take's frame groups --------------------------------------------------------------
-
-def _gather(per_camera: Sequence[np.ndarray | None], frame_index: np.ndarray) -> np.ndarray:
-    """(T,C,21,3) keypoints of each group from per-camera (F_c,21,3) arrays (None: camera absent)."""
-    out = np.full(frame_index.shape + (21, 3), np.nan)
-    out[..., 2] = 0.0
-    for c, kp in enumerate(per_camera):
-        if kp is None:
-            continue
-        idx = frame_index[:, c]
-        ok = (idx >= 0) & (idx < len(kp))
-        out[ok, c] = kp[idx[ok]]
-    return out
-
-
-def _keypoints_file(take: Take, frame_index: np.ndarray) -> tuple[np.ndarray, str]:
-    path = take.path / "keypoints2d.h5"
-    data = read_keypoints_h5(path)
-    for cam in take.cameras:
-        if cam in data.cameras and len(data.cameras[cam].keypoints) != take.frame_count(cam):
-            raise AnnotateError(f"{path}: camera {cam} has {len(data.cameras[cam].keypoints)} frames of keypoints, "
-                                f"frames.csv {take.frame_count(cam)} (detected on another recording?)")
-    per_camera = [data.cameras[c].keypoints if c in data.cameras else None for c in take.cameras]
-    return _gather(per_camera, frame_index), f"file:keypoints2d.h5 (model {data.model})"
-
-
-def _keypoints_detect(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
-    detector = cached_detector(options.model, options.device, options.palm_tiles)
-    result = detect_take(take, detector)
-    write_keypoints_h5(take.path / "keypoints2d.h5", TakeKeypoints(
-        result, detector.name, str(detector.model.session.path), box_source(None, True, options.palm_tiles),
-        {"take": str(take.path), "software": software_version(), "providers": ",".join(detector.providers)}))
-    tiles = "+palm-tiles" if options.palm_tiles else ""
-    return _gather([result[c].keypoints for c in take.cameras], frame_index), f"detect:{options.model}{tiles}"
-
-
-def _keypoints_simulated(take: Take, frame_index: np.ndarray, options: AnnotateOptions) -> tuple[np.ndarray, str]:
-    # Each take gets its own noise: the same seed on two takes would repeat the same faults.
-    seed = options.sim_seed ^ zlib.crc32(take.path.name.encode())
-    det = SimulatedDetector(options.sim_noise_px, options.sim_outlier_rate, dropout_rate=options.sim_dropout_rate,
-                            seed=seed)
-    return simulated_take_keypoints(take, frame_index, det), (
-        f"simulated:noise_px={options.sim_noise_px},outlier_rate={options.sim_outlier_rate},"
-        f"dropout_rate={options.sim_dropout_rate},seed={seed}")
-
-
-def keypoint_mode(take: Take, options: AnnotateOptions) -> str:
-    """file, detect or simulated: what options.keypoints means for this take."""
-    if options.keypoints == "auto":
-        return "file" if (take.path / "keypoints2d.h5").exists() else "detect"
-    return options.keypoints
-
-
-def take_keypoints(take: Take, frame_index: np.ndarray,
-                   options: AnnotateOptions = AnnotateOptions()) -> tuple[np.ndarray, str]:
-    """Keypoints (T,C,21,3) of the take's frame groups and a description of where they came from."""
-    mode = keypoint_mode(take, options)
-    if mode == "file":
-        if not (take.path / "keypoints2d.h5").exists():
-            raise AnnotateError(f"{take.path / 'keypoints2d.h5'}: missing (run `manus-capture detect {take.path}`)")
-        return _keypoints_file(take, frame_index)
-    if mode == "simulated":
-        return _keypoints_simulated(take, frame_index, options)
-    return _keypoints_detect(take, frame_index, options)
-
-
 # --- tasks -----------------------------------------------------------------------------------------
 
 @dataclass
@@ -238,6 +125,9 @@ class TakeTask:
     bones: np.ndarray | None = None
     bone_source: str = "take"
     groups: Groups | None = None
+    # (keypoints (T,C,21,3), source, views recovered) where this run has them already: a hand
+    # take's, found for the subject's bones, are not detected a second time for its annotation
+    keypoints: tuple[np.ndarray, str, int] | None = None
 
 
 class _Prepared(NamedTuple):
@@ -261,8 +151,11 @@ def _prepare(task: TakeTask) -> _Prepared:
     else:
         groups = frame_groups(take)
         frame_ns, frame_index, grouping = groups.frame_ns, groups.frame_index, groups.description
-    kp, source = take_keypoints(take, frame_index, task.options)
     used = [take.cameras.index(c) for c in task.cameras]
+    if task.keypoints is not None:
+        kp, source, recovered = task.keypoints
+        return _Prepared(take, frame_ns, frame_index[:, used], kp, source, grouping, recovered)
+    kp, source = take_keypoints(take, frame_index, task.options)
     frame_index, kp, recovered = frame_index[:, used], kp[:, used], 0
     if task.options.cross_view and keypoint_mode(take, task.options) == "detect":
         o = task.options
@@ -272,11 +165,13 @@ def _prepare(task: TakeTask) -> _Prepared:
     return _Prepared(take, frame_ns, frame_index, kp, source, grouping, recovered)
 
 
-def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float]:
-    """Per-frame bone lengths (T,20) of a hand take and the error threshold used (for the subject)."""
-    X, err = triangulate_frames(task.rig, _prepare(task).keypoints, threshold_px=task.options.threshold_px,
+def hand_take_samples(task: TakeTask) -> tuple[np.ndarray, float, tuple[np.ndarray, str, int]]:
+    """Per-frame bone lengths (T,20) of a hand take and the error threshold used (for the subject),
+    and the take's keypoints, source and views recovered (TakeTask.keypoints, for its annotation)."""
+    prepared = _prepare(task)
+    X, err = triangulate_frames(task.rig, prepared.keypoints, threshold_px=task.options.threshold_px,
                                 min_views=task.options.min_views)
-    return bone_samples(X, err)
+    return *bone_samples(X, err), (prepared.keypoints, prepared.source, prepared.recovered)
 
 
 def annotate_take(task: TakeTask) -> TakeAnnotation:
@@ -410,11 +305,12 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
     given = {k: groups(t) if callable(groups) else groups.get(str(t.path), groups.get(k)) if groups else None
              for t, k in zip(opened, keys)}
 
-    def make_task(take: Take, key: str, bone_lengths=None, source="take") -> TakeTask:
+    def make_task(take: Take, key: str, bone_lengths=None, source="take", keypoints=None) -> TakeTask:
         cams = used[keys.index(key)]
         return TakeTask(str(take.path), key, rig.subset(cams), options, calibration, cams,
                         annotate_inputs(take, cams, calibration, options, bones, given[key]),
-                        None if bone_lengths is None else np.asarray(bone_lengths, np.float64), source, given[key])
+                        None if bone_lengths is None else np.asarray(bone_lengths, np.float64), source, given[key],
+                        keypoints)
 
     todo, done = [], writer.done
     for take, key, cams in zip(opened, keys, used):
@@ -430,9 +326,11 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
         todo.append((take, key))
     finished = len(summary.resumed)
     progress("annotate", finished, len(keys))
-    session_bones = _session_bones(todo, list(zip(opened, keys)), bones, make_task, workers, scheduler, summary)
+    found: dict[str, tuple] = {}    # the hand takes' keypoints, found for the bones
+    session_bones = _session_bones(todo, list(zip(opened, keys)), bones, make_task, workers, scheduler, summary, found)
     # built after the session's bones: a subject file written by this run is what the takes depend on
-    tasks = [make_task(t, k, *session_bones.get(t.path.resolve().parent, (None, "take"))) for t, k in todo]
+    tasks = [make_task(t, k, *session_bones.get(t.path.resolve().parent, (None, "take")), found.get(k))
+             for t, k in todo]
     for task, result in run_tasks(annotate_take, tasks, workers, scheduler, key=_take_key):
         if isinstance(result, KeyboardInterrupt):
             raise result
@@ -450,9 +348,11 @@ def annotate(takes: Iterable[str | Path], calib: str | Path, output: str | Path,
     return summary
 
 
-def _session_bones(todo, every, bones, make_task, workers, scheduler, summary) -> dict[Path, tuple[np.ndarray, str]]:
+def _session_bones(todo, every, bones, make_task, workers, scheduler, summary,
+                   found: dict[str, tuple]) -> dict[Path, tuple[np.ndarray, str]]:
     """Bone lengths (and where they came from) per session folder of the takes to do, following the
-    module doc; the hand takes among `every` take of the run count, also those done before."""
+    module doc; the hand takes among `every` take of the run count, also those done before. The hand
+    takes' keypoints go into `found` by take key (TakeTask.keypoints)."""
     sessions = sorted({t.path.resolve().parent for t, _ in todo})
     if bones is not None:
         est = load_subject(bones) if isinstance(bones, (str, Path)) else None
@@ -479,7 +379,8 @@ def _session_bones(todo, every, bones, make_task, workers, scheduler, summary) -
     for task, result in run_tasks(hand_take_samples, tasks, workers, scheduler, key=_take_key):
         if isinstance(result, BaseException):
             raise AnnotateError(f"{task.path}: bone lengths of the subject: {result}") from None
-        samples[Path(task.path).resolve().parent].append(result)
+        samples[Path(task.path).resolve().parent].append(result[:2])
+        found[task.key] = result[2]
     for session, arrays in samples.items():
         est = bone_lengths_from_samples(np.concatenate([a for a, _ in arrays]),
                                         max(thr for _, thr in arrays))

@@ -147,7 +147,7 @@ def test_demo_reads_no_truth_unless_an_ablation_is_named(tmp_path, monkeypatch):
     assert config.simulated_keypoints and config.true_calibration
 
 
-def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
+def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path, monkeypatch):
     """`make demo` annotates with the ONNX detector on the frames, and the bones come from its keypoints
     of the hand take; annotate's cross-view step looks again where the palm detector found nothing.
     Measured on this session (12 cameras at 320x180), in brackets without the cross-view step: a
@@ -156,7 +156,14 @@ def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
     worst (on `make demo`'s session MediaPipe's landmarks span 5-9 % less than the true joints; on
     the real photos of test_keypoints_real they do not); the simulated detector's keypoints of the
     same takes are fitted 3.1 mm off, 8.4 deg (test_stages_agree_with_the_simulators_truth). The
-    bounds give the detector's figures a factor 2."""
+    bounds give the detector's figures a factor 2. The hand take is detected once, though its
+    keypoints give both the subject's bones and its own annotation."""
+    from dataset_tools import take_keypoints
+
+    detected = []
+    original = take_keypoints.detect_take
+    monkeypatch.setattr(take_keypoints, "detect_take",
+                        lambda take, *a, **k: detected.append(take.path.name) or original(take, *a, **k))
     out, summary, _ = demo
     assert stage(summary, "annotate")["keypoints"] == "simulated"
     run = tmp_path / "run"
@@ -164,6 +171,7 @@ def test_default_keypoints_are_the_onnx_detectors(demo, tmp_path):
     (run / "calib").symlink_to(out / "calib")
     figures = Demo(run, DemoConfig(), say=lambda _: None).annotate()
     assert figures["keypoints"] == "detect", figures
+    assert sorted(detected) == ["01-hand", "03-grasp1", "04-canonical1"], detected
     for name in ("01-hand", "03-grasp1", "04-canonical1"):
         assert (run / "session" / name / "keypoints2d.h5").is_file(), name
     with h5py.File(run / "DATASET.h5") as f:

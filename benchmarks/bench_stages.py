@@ -16,7 +16,9 @@ thread for numpy, OpenCV and onnxruntime, runs through the command line as a use
     detect              palm detector and hand keypoints (ONNX, tracked) on every frame
     detect (int8)       the same with the int8 landmark model (`models quantize`, calibrated on the
                         shortest hand take, in a model cache of the benchmark's own)
-    annotate            triangulation, IK and the 1-euro filter from keypoints2d.h5 (reads no image)
+    annotate            triangulation, IK and the 1-euro filter from keypoints2d.h5, without the
+                        cross-view step (which reads the frames of the views the palm detector
+                        missed and runs the landmark model twice on each: docs/annotate.md)
     segment             hand masks of every frame group, every camera, into DATASET.h5
     reconstruct hand    MANUS-Hand trained on crops of 6 poses, 100 steps (counted in steps: its
                         work does not grow with the take)
@@ -156,7 +158,8 @@ def stages(session: Path, seconds: float, cpu: int, log: Path) -> list[Run]:
             measure("detect (int8)", [cli, "detect", str(take), "--model", "mediapipe-hand-int8",
                                       "-o", str(session / "keypoints_int8.h5")], seconds, frames, cpu, log),
             measure("annotate", [cli, "annotate", str(take), "--calib", str(calib), "--keypoints", "file",
-                                 "--bones", str(session / "bones.json"), "-o", str(session / "dataset.h5")],
+                                 "--no-cross-view", "--bones", str(session / "bones.json"),
+                                 "-o", str(session / "dataset.h5")],
                     seconds, frames, cpu, log)]
     groups = len(np.load(take / "frame_groups.npz")["frame_ns"])
     dataset = session / "dataset.h5"

@@ -50,7 +50,7 @@ from .hand.ik import fit_hand, unwrap_rotations, wrap_rotations
 from .keypoints.keypoints2d import cached_detector
 from .one_euro import one_euro
 from .sync import GROUPS_FILE, frame_groups
-from .take_keypoints import keypoint_mode, take_keypoints
+from .take_keypoints import cross_view_model, keypoint_mode, take_keypoints
 from .tasks import run_tasks
 from .triangulation import triangulate_frames
 
@@ -157,9 +157,9 @@ def _prepare(task: TakeTask) -> _Prepared:
         return _Prepared(take, frame_ns, frame_index[:, used], kp, source, grouping, recovered)
     kp, source = take_keypoints(take, frame_index, task.options)
     frame_index, kp, recovered = frame_index[:, used], kp[:, used], 0
-    if task.options.cross_view and keypoint_mode(take, task.options) == "detect":
-        o = task.options
-        kp, recovered = recover_views(take, task.rig, kp, frame_index, cached_detector(o.model, o.device, o.palm_tiles),
+    model, o = cross_view_model(take, task.options), task.options
+    if model is not None:
+        kp, recovered = recover_views(take, task.rig, kp, frame_index, cached_detector(model, o.device, o.palm_tiles),
                                       o.threshold_px, o.min_views)
         source += "+cross-view"
     return _Prepared(take, frame_ns, frame_index, kp, source, grouping, recovered)
@@ -243,11 +243,11 @@ def annotate_inputs(take: Take, cameras: Sequence[str], calibration: dict, optio
         inputs["keypoint_model"] = options.model
         if options.palm_tiles:
             inputs["palm_tiles"] = True
-        if options.cross_view:
-            inputs["cross_view"] = True
     elif mode == "simulated":
         inputs["keypoint_simulation"] = {"noise_px": options.sim_noise_px, "outlier_rate": options.sim_outlier_rate,
                                          "dropout_rate": options.sim_dropout_rate, "seed": options.sim_seed}
+    if cross_view_model(take, options) is not None:
+        inputs["cross_view"] = True
     if groups is not None:
         inputs.update(frame_groups="given", frame_groups_sha256=array_sha256(*map(np.int64, groups)))
     elif (take.path / GROUPS_FILE).is_file():

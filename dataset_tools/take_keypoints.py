@@ -21,6 +21,7 @@ from .keypoints.keypoints2d import (
     box_source,
     cached_detector,
     detect_take,
+    keypoints_model,
     read_keypoints_h5,
     write_keypoints_h5,
 )
@@ -76,6 +77,20 @@ def keypoint_mode(take: Take, options: AnnotateOptions) -> str:
     if options.keypoints == "auto":
         return "file" if (take.path / "keypoints2d.h5").exists() else "detect"
     return options.keypoints
+
+
+def cross_view_model(take: Take, options: AnnotateOptions) -> str | None:
+    """The keypoint model annotate's cross-view step runs on this take (cross_view.py), or None:
+    with `cross_view`, the model it detects with, or with keypoints from keypoints2d.h5 the `model`
+    of the options where the file was detected with it (by `detect` or an earlier annotate), so that
+    a second run reading the file gives what the first gave. Another model's keypoints, or a
+    simulation's, are used as they are."""
+    if not options.cross_view:
+        return None
+    mode = keypoint_mode(take, options)
+    if mode == "detect" or mode == "file" and keypoints_model(take.path / "keypoints2d.h5") == options.model:
+        return options.model
+    return None
 
 
 def take_keypoints(take: Take, frame_index: np.ndarray,

@@ -349,6 +349,16 @@ def write_keypoints_h5(path: str | Path, data: TakeKeypoints) -> None:
     write_atomic(path, buffer.getvalue())
 
 
+def keypoints_model(path: str | Path) -> str | None:
+    """The `model` a keypoints2d.h5 was detected with (its attributes only), None where the file is
+    missing or not one."""
+    try:
+        with h5py.File(path, "r") as f:
+            return str(f.attrs["model"]) if f.attrs.get("format") == FORMAT else None
+    except (OSError, KeyError):
+        return None
+
+
 def read_keypoints_h5(path: str | Path) -> TakeKeypoints:
     """Read keypoints2d.h5; TakeError naming the file when it is not one."""
     path = Path(path)

@@ -74,7 +74,8 @@ def recover_views(take: Take, rig: CameraRig, keypoints2d: np.ndarray, frame_ind
     todo &= inside.T >= options.min_inside
     recovered = 0
     for c, cam in enumerate(rig.ids):
-        rows = np.flatnonzero(todo[:, c])
+        # frames past the end of a video cut short (a crashed take) have no image to look at
+        rows = np.flatnonzero(todo[:, c] & (frame_index[:, c] < take.readable_frames(cam)))
         if not len(rows):
             continue
         # Crop around the projected joints that are known; a NaN joint would make the crop NaN.

@@ -10,6 +10,7 @@ CLI's `--keypoints detect` sets; frame groups are given (frame k of every camera
 from __future__ import annotations
 
 import dataclasses
+import shutil
 
 import h5py
 import numpy as np
@@ -173,6 +174,22 @@ def test_cross_view_finds_the_hand_where_the_palm_detector_did_not(installed, re
     again = read_dataset(out)["S/wide"]
     assert again.attrs["keypoint_source"] == "file:keypoints2d.h5 (model mediapipe-hand)+cross-view"
     np.testing.assert_array_equal(again.keypoints2d, on.keypoints2d)
+
+
+def test_cross_view_leaves_the_frames_a_cut_video_lacks(installed, rendered):
+    """A take whose video of a MISSED camera ends inside its last frame (a crash mid-take): the
+    cross-view step looks in the frames the video holds and leaves the missing one empty."""
+    from test_truncated_takes import cut_after
+
+    root = rendered["root"]
+    take = root / "S" / "cut"
+    shutil.copytree(rendered["wide"], take)
+    cut_after(take / "cams" / f"{MISSED[0]}.mkv", len(TICKS) - 1)
+    summary = annotate([take], root / "calib", root / "CUT.h5", AnnotateOptions(keypoints="detect", device="cpu"),
+                       bones=rendered["bones"], groups=given_groups(take))
+    assert summary.annotated == ["S/cut"] and not summary.failed, summary
+    found = read_dataset(root / "CUT.h5")["S/cut"].keypoints2d[:, WIDE.index(MISSED[0]), 0, 2] > 0.5
+    assert found[:-1].all() and not found[-1], found
 
 
 def test_detect_split_over_processes_gives_the_single_process_keypoints(installed, rendered, tmp_path):

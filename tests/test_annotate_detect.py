@@ -176,6 +176,24 @@ def test_cross_view_finds_the_hand_where_the_palm_detector_did_not(installed, re
     np.testing.assert_array_equal(again.keypoints2d, on.keypoints2d)
 
 
+def test_the_command_turns_cross_view_off_when_asked(monkeypatch, tmp_path):
+    """`annotate --no-cross-view` reaches AnnotateOptions; the default keeps the step."""
+    from click.testing import CliRunner
+
+    from dataset_tools.annotate import AnnotateSummary
+    from manus_capture.cli import cli
+    from manus_capture.commands import annotate as command
+
+    seen = []
+    monkeypatch.setattr(command, "annotate", lambda takes, calib, output, options, **kwargs:
+                        seen.append(options) or AnnotateSummary(output))
+    for flag in ((), ("--no-cross-view",)):
+        res = CliRunner().invoke(cli, ["annotate", str(tmp_path), "--calib", str(tmp_path), "-o",
+                                       str(tmp_path / "D.h5"), *flag])
+        assert res.exit_code == 0, res.output
+    assert [o.cross_view for o in seen] == [True, False]
+
+
 def test_cross_view_leaves_the_frames_a_cut_video_lacks(installed, rendered):
     """A take whose video of a MISSED camera ends inside its last frame (a crash mid-take): the
     cross-view step looks in the frames the video holds and leaves the missing one empty."""

@@ -238,7 +238,8 @@ def test_unmixing_names_each_pixel_by_its_best_pair_as_numpy_does():
     names = np.array([0, 1, 2], np.uint8)
     labels = rng.integers(0, 3, (20, 25)).astype(np.uint8)
     out = labels.copy()
-    _unmix(image, ys, xs, np.ascontiguousarray(ends), reachable, pairs, shades, names, out)
+    _unmix(np.ascontiguousarray(image[ys, xs].T), ys, xs, np.ascontiguousarray(ends), reachable, pairs, shades,
+           names, out)
 
     pixel = image[ys, xs]                                          # (n,3)
     a = ends[pairs[:, 0]].transpose(0, 2, 1) * shades[:, :1, None]  # (pairs,n,3)

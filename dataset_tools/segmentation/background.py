@@ -96,6 +96,13 @@ class BackgroundModel:
         move a block's mean by THRESHOLD_SIGMA * BLOCK_SHARE is not looked for. `gain`: the image's
         (self.gain), when known. `out`: an (H,W) bool array of zeros to write the mask into (a
         frame group's masks, written only where its windows are)."""
+        return self.foreground_box(image, threshold, min_area, block, gain, out)[0]
+
+    def foreground_box(self, image: np.ndarray, threshold: float = THRESHOLD_SIGMA, min_area: int = 0,
+                       block: int | None = None, gain: float | None = None,
+                       out: np.ndarray | None = None) -> tuple[np.ndarray, tuple[slice, slice] | None]:
+        """foreground() and the mask's bounding box (bounding_window(mask, 0)), found in the windows
+        looked at (a pass over a whole 1280x720 view's mask cost as much as the hand's pixels)."""
         self._check(image)
         inverse_gain = 1 / (self.gain(image) if gain is None else gain)
         block = max(1, self.shape[0] // COARSE_HEIGHT) if block is None else int(block)
@@ -111,10 +118,12 @@ class BackgroundModel:
             inner = (slice(rows.start - outer[0].start, rows.stop - outer[0].start),
                      slice(cols.start - outer[1].start, cols.stop - outer[1].start))
             mask[rows, cols] |= found[inner]
-        if min_area and windows:
-            around = _union(windows)
+        if not windows:
+            return mask, None
+        around = _union(windows)
+        if min_area:
             mask[around] = remove_small(mask[around], min_area)
-        return mask
+        return mask, window_box(mask[around], around)
 
     def _check(self, image: np.ndarray) -> None:
         if image.shape != self.median.shape:
@@ -262,6 +271,13 @@ def bounding_window(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None
     # the columns only over the rows with any (a hand is a few percent of a 1280x720 view)
     cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
     return grow_window((slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)), margin, mask.shape)
+
+
+def window_box(mask: np.ndarray, window: tuple[slice, slice]) -> tuple[slice, slice] | None:
+    """The bounding box (rows, columns of the image) of a mask (h,w) that is the image's `window`;
+    None for an empty mask."""
+    box = bounding_window(mask, 0)
+    return None if box is None else tuple(slice(w.start + b.start, w.start + b.stop) for w, b in zip(window, box))
 
 
 def grow_window(window: tuple[slice, slice], margin: int, shape: tuple[int, ...]) -> tuple[slice, slice]:

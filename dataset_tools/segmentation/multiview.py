@@ -23,7 +23,7 @@ from manus_core.cameras import CameraRig
 from manus_core.errors import SegmentationError
 from manus_core.jit import jit
 
-from .background import bounding_window, fill_holes, grow_window
+from .background import bounding_window, fill_holes, grow_window, window_box
 
 # The distance to a view's mask is computed in a window this many px around it and bounded
 # below by the distance to the mask's box beyond: exact for every voxel whose projected radius is
@@ -342,8 +342,9 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2, box
             more = _silhouettes(rig, majority, [w if u else None for w, u in zip(windows, unsupported)])
             for c in np.flatnonzero(unsupported):
                 supported[c] |= _supported(parts[c], len(supported[c]), more[c], kernel)
-    # a view's mask is empty outside its window: only the windows are written
-    out = np.zeros_like(masks)
+    # a view's mask is empty outside its window: only the windows are written (np.zeros, whose
+    # pages the system hands out zeroed when first touched: zeros_like writes every byte)
+    out = np.zeros(masks.shape, bool)
     dropped, filled, kept_boxes = [], [], []
     for c, (mask, proj, window) in enumerate(zip(masks, projected, windows)):
         if window is None:
@@ -358,9 +359,7 @@ def consistent_masks(rig: CameraRig, masks: np.ndarray, support_px: int = 2, box
         out[c][window] = done
         dropped.append(int(np.count_nonzero(mask & ~kept)))
         filled.append(int(np.count_nonzero(done & ~kept)))
-        box = bounding_window(done, 0)
-        kept_boxes.append(None if box is None else tuple(slice(w.start + b.start, w.start + b.stop)
-                                                         for w, b in zip(window, box)))
+        kept_boxes.append(window_box(done, window))
     return out, {"voxels": int(len(occupancy.centres)), "voxel_m": occupancy.voxel,
                  "majority_voxels": int(majority_voxels), "dropped_px": dropped, "filled_px": filled,
                  "boxes": kept_boxes}

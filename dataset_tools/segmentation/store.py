@@ -14,7 +14,7 @@ import numpy as np
 
 from manus_core.scratch import GZIP_LEVEL, ScratchArrays
 
-from .background import bounding_window
+from .background import bounding_window, window_box
 
 HAND, OBJECT = "masks/hand", "masks/object"
 # (rows, columns): a 1280x720 view in 16 tiles; 320x180, the demo's, in one
@@ -70,11 +70,10 @@ class MaskStore(ScratchArrays):
                 # as False and takes no space (in the file, and in DATASET.h5, which copies the tiles
                 # as they are), while compressing an empty one costs as much as a full one (a whole
                 # 1280x720 view 1.4-1.9 ms; a hand's box covers a third of it or less)
-                box = bounding_window(masks, 0)
+                # the mask's box in the image, and the tiles that hold it
+                box = window_box(masks, view.window)
                 if box is None:
                     continue
-                # the mask's box in the image, and the tiles that hold it
-                box = tuple(slice(w.start + b.start, w.start + b.stop) for w, b in zip(view.window, box))
                 tiles = tuple(slice(b.start // size * size, min(-(-b.stop // size) * size, length))
                               for b, size, length in zip(box, self.tile, array.shape[2:]))
                 block = np.zeros([t.stop - t.start for t in tiles], bool)

@@ -10,7 +10,7 @@ import numpy as np
 from manus_core.cameras import CameraRig
 from manus_core.errors import SegmentationError
 
-from .background import BackgroundModel, bounding_window, grow_window, remove_small
+from .background import BackgroundModel, grow_window, remove_small
 from .colour import ColourModel, PaintKey
 from .edges import refine_edges
 from .multiview import Window, consistent_masks
@@ -24,13 +24,20 @@ def foreground_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel |
                      gains: Sequence[float | None] | None = None) -> np.ndarray:
     """Foreground (C,H,W) of views (C,H,W,3); a view without a background gets an empty mask.
     gains: each view's brightness against its background, when known (BackgroundModel.gain)."""
+    return _foreground(images, backgrounds, min_area, gains)[0]
+
+
+def _foreground(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None], min_area: int = 8,
+                gains: Sequence[float | None] | None = None) -> tuple[np.ndarray, list[Window | None]]:
+    """foreground_masks and each mask's box (None: empty)."""
     images = np.asarray(images)
     out = np.zeros(images.shape[:3], bool)
+    boxes: list[Window | None] = [None] * len(images)
     gains = [None] * len(images) if gains is None else gains
     for c, (image, bg, gain) in enumerate(zip(images, backgrounds, gains)):
         if bg is not None:
-            bg.foreground(image, min_area=min_area, gain=gain, out=out[c])
-    return out
+            boxes[c] = bg.foreground_box(image, min_area=min_area, gain=gain, out=out[c])[1]
+    return out, boxes
 
 
 def object_pixels(images: np.ndarray, backgrounds: Sequence[BackgroundModel | None]) -> np.ndarray:
@@ -90,9 +97,8 @@ def hand_object_masks(images: np.ndarray, backgrounds: Sequence[BackgroundModel 
     (without an object model, all foreground is hand); last, the pixels along every edge are
     unmixed against the background and the two classes (edges.refine_edges)."""
     gains = [None if bg is None else bg.gain(image) for image, bg in zip(images, backgrounds)]
-    fg = foreground_masks(images, backgrounds, min_area, gains)
+    fg, boxes = _foreground(images, backgrounds, min_area, gains)
     report: dict = {}
-    boxes = [bounding_window(m, 0) for m in fg]
     if rig is not None and sum(b is not None for b in boxes) >= 2:
         fg, report["multiview"] = consistent_masks(rig, fg, boxes=boxes)
         boxes = report["multiview"]["boxes"]

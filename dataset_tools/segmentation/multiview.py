@@ -46,10 +46,12 @@ Window = tuple[slice, slice]
 
 @dataclass(frozen=True)
 class Occupancy:
-    """Kept voxel centres (N,3) in the world and the voxel edge (m)."""
+    """Kept voxel centres (N,3) in the world and the voxel edge (m); `pixels`: the centres' pixels
+    (C,N,2) in the rig's views when carve has them (they are drawn from, not projected again)."""
 
     centres: np.ndarray
     voxel: float
+    pixels: np.ndarray | None = None
 
 
 def default_bounds(rig: CameraRig, margin: float = 0.1) -> np.ndarray:
@@ -134,15 +136,18 @@ def _distance_kernel(uv: np.ndarray, depth: np.ndarray, views: np.ndarray, size:
     return out
 
 
-def _votes(rig: CameraRig, dist: _Distances, points: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
-    """(seen, hit) counts per point over the views in `dist`: seen when it projects into the image
-    in front of the camera, hit when a mask pixel lies within the voxel's projected radius."""
+def _votes(rig: CameraRig, dist: _Distances, points: np.ndarray,
+           half: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(seen, hit) counts per point over the views in `dist` (seen when it projects into the image
+    in front of the camera, hit when a mask pixel lies within the voxel's projected radius), and
+    the points' pixels (C,N,2)."""
     depth = rig.R[:, 2] @ points.T + rig.t[:, 2, None]
-    distance = dist.at(rig.project(points), depth)
+    uv = rig.project(points)
+    distance = dist.at(uv, depth)
     seen = np.isfinite(distance)
     with np.errstate(divide="ignore"):
         radius = rig.K[dist.views, 0, 0, None] * half * np.sqrt(3) / depth[dist.views] + 1.0
-    return seen.sum(axis=0), (seen & (distance <= radius)).sum(axis=0)
+    return seen.sum(axis=0), (seen & (distance <= radius)).sum(axis=0), uv
 
 
 def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, voxel: float = 0.005,
@@ -172,20 +177,23 @@ def carve(rig: CameraRig, masks: np.ndarray, bounds: np.ndarray | None = None, v
     halves = np.stack(np.meshgrid(*[(-0.5, 0.5)] * 3, indexing="ij"), -1).reshape(-1, 3)
     size = coarse
     while True:
-        seen, hit = _votes(rig, dist, points, size / 2)
+        seen, hit, uv = _votes(rig, dist, points, size / 2)
         allowed = np.maximum(misses, np.floor(miss_fraction * seen)).astype(np.int32)
-        points = points[(hit >= np.maximum(seen - allowed, min_views))]
+        kept = hit >= np.maximum(seen - allowed, min_views)
+        points = points[kept]
         if size <= voxel * 1.001 or not len(points):
-            return Occupancy(points, size)
+            return Occupancy(points, size, uv[:, kept])
         size /= 2
         points = (points[:, None, :] + halves[None] * size).reshape(-1, 3)
 
 
-def _boxes(rig: CameraRig, centres: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+def _boxes(rig: CameraRig, occupancy: Occupancy) -> tuple[np.ndarray, np.ndarray]:
     """Each voxel's projection as a box: its centre's pixel (C,N,2) and the half extents (C,N,2)
     of its corners' projections, from the pinhole's derivative at the centre (the lens distortion
     changes a 5 mm voxel's few pixels by a few percent, and is left out of the extents)."""
-    return rig.project(centres), _extents(rig.to_camera(centres), rig.R, rig.K, half)
+    centres = occupancy.centres
+    uv = rig.project(centres) if occupancy.pixels is None else occupancy.pixels
+    return uv, _extents(rig.to_camera(centres), rig.R, rig.K, occupancy.voxel / 2)
 
 
 @jit
@@ -267,7 +275,7 @@ def _silhouettes(rig: CameraRig, occupancy: Occupancy, windows: list[Window | No
     if not len(occupancy.centres):
         return [None if w is None else np.zeros((w[0].stop - w[0].start, w[1].stop - w[1].start), bool)
                 for w in windows]
-    uv, extent = _boxes(rig, occupancy.centres, occupancy.voxel / 2)
+    uv, extent = _boxes(rig, occupancy)
     return [None if w is None else _draw_boxes(uv[c], extent[c], w) for c, w in enumerate(windows)]
 
 

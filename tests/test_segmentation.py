@@ -326,6 +326,11 @@ def test_carving_survives_views_that_something_static_hides_the_hand_from():
     # the lower half is half the ball (measured 0.47 kept, 0.18 with one miss allowed)
     assert np.mean(kept[:, 2] < 0) > 0.4, np.mean(kept[:, 2] < 0)
     assert np.mean(strict[:, 2] < 0) < 0.25
+    # the voxels' pixels the carving hands on (drawn from, not projected again) are their projections
+    occupancy = carve(rig, masks)
+    assert np.allclose(occupancy.pixels, rig.project(occupancy.centres), equal_nan=True)
+    assert np.array_equal(project_occupancy(rig, occupancy, (90, 160)),
+                          project_occupancy(rig, Occupancy(occupancy.centres, occupancy.voxel), (90, 160)))
 
 
 def test_consistency_keeps_what_something_static_hides_from_many_views():

@@ -3,6 +3,9 @@ and the errors a user meets. None of these need the installed MediaPipe model.""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -222,6 +225,37 @@ def test_errors_name_file_and_shapes(tmp_path: Path, monkeypatch: pytest.MonkeyP
         hand_keypoint_detector(bad)
     with pytest.raises(ModelError, match="needs a spec"):
         hand_keypoint_detector(model)
+
+
+_SESSION_THREADS = """
+import os, sys
+os.sched_setaffinity(0, {int(sys.argv[2])})
+from dataset_tools.keypoints.runtime import Session
+session = Session(sys.argv[1], device="cpu")
+allowed = set()
+for task in os.listdir("/proc/self/task"):
+    with open(f"/proc/self/task/{task}/status") as status:
+        allowed |= {line.split()[1] for line in status if line.startswith("Cpus_allowed_list")}
+print(session._session.get_session_options().intra_op_num_threads, " ".join(sorted(allowed)))
+"""
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to see a thread leave its CPU set")
+@pytest.mark.parametrize("omp", [None, "2"])
+def test_a_session_keeps_its_threads_on_the_processs_cpus(tmp_path: Path, omp: str | None) -> None:
+    """onnxruntime left to itself starts a thread per core of the machine, each pinned to its core
+    outside the process's CPU set: detect run on one core ran its network on another. A session
+    takes the CPUs the process may use, or OMP_NUM_THREADS where set (a Dask worker's one), and
+    none of its threads leaves the process's CPUs."""
+    model = dot_simcc_graph(tmp_path / "dot.onnx")
+    cpu = min(os.sched_getaffinity(0))
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    env |= {} if omp is None else {"OMP_NUM_THREADS": omp}
+    out = subprocess.run([sys.executable, "-c", _SESSION_THREADS, str(model), str(cpu)], env=env,
+                         cwd=Path(__file__).resolve().parents[1],
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out[1:] == [str(cpu)]
+    assert int(out[0]) == (1 if omp is None else 2)
 
 
 # -- crop geometry ---------------------------------------------------------------------------------

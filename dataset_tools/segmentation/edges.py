@@ -198,10 +198,10 @@ def refine_edges(image: np.ndarray, labels: np.ndarray, background: np.ndarray |
 @jit
 def _unmix(pixel: np.ndarray, ys: np.ndarray, xs: np.ndarray, ends: np.ndarray, reachable: np.ndarray,
            pairs: np.ndarray, shades: np.ndarray, names: np.ndarray, out: np.ndarray) -> None:
-    """refine_edges' decision at each pixel (ys, xs) of `out`, whose colours are `pixel` (3,N): of the
-    pairs (i, j) of ends (E,3,N) at their shades, both reachable from the pixel, the first whose segment lies nearest
-    the pixel's colour names it, by the end that makes up more than half of it (out[y, x] = that
-    end's name); a pixel no pair may explain keeps its label. Pair after pair over all the pixels:
+    """refine_edges' decision at each pixel (ys, xs) of `out`, whose colours are `pixel` (3,N): of
+    the pairs (i, j) of ends (E,3,N) at their shades, both reachable from the pixel, the first whose
+    segment lies nearest the pixel's colour names it, by the end that makes up more than half of it
+    (out[y, x] = that end's name); a pixel no pair may explain keeps its label. Pair after pair over all the pixels:
     the loop over the pixels runs in SIMD, six times as fast as each pixel's pairs in turn (and
     numpy's (pairs, N) arrays of every product took a third of refine_edges' time)."""
     count = len(ys)

@@ -67,8 +67,8 @@ from rig.sim.cube import true_cameras  # noqa: E402
 from rig.sim.hand import make_hand  # noqa: E402
 
 BIN = Path(sys.executable).parent
-# (onnxruntime reads none of these: the toolkit's sessions take OMP_NUM_THREADS, keypoints/runtime.py;
-# before they did, its threads ran on the other core, and detect's figures were two cores')
+# onnxruntime itself reads none of these; the toolkit's sessions take OMP_NUM_THREADS (keypoints/runtime.py).
+# Before they did, onnxruntime's threads ran on the other core, and detect's figures were two cores'.
 ONE_THREAD = {v: "1" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
                                "OPENCV_FOR_THREADS_NUM")}
 FLOOR_SHARE = 0.5      # every stage that reads frames at >= 50 % of decoding's rate (issue 23)

@@ -69,6 +69,8 @@ class Take:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         meta_path = self.path / "take.json"
+        if self.path.is_file():
+            raise TakeError(f"{self.path}: a file, not a take folder (give the folder that holds take.json)")
         if not self.path.is_dir():
             raise TakeError(f"{self.path}: no such take folder")
         try:

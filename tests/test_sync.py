@@ -441,8 +441,7 @@ def test_bad_input(tmp_path: Path) -> None:
     runner = CliRunner()
     take = _hand_take(tmp_path / "take")
     csv = (take / "frames.csv").read_text()
-    # a file given for the take folder (its frames.csv, as a user might)
-    res = runner.invoke(cli, ["sync-report", str(take / "frames.csv")])
+    res = runner.invoke(cli, ["sync-report", str(take / "frames.csv")])   # a file for the take folder
     assert res.exit_code == 2 and "frames.csv: a file, not a take folder" in res.output, res.output
     (take / "frames.csv").unlink()
     res = runner.invoke(cli, ["sync-report", str(take)])
@@ -480,10 +479,9 @@ def test_bad_input(tmp_path: Path) -> None:
 def test_recorded_sim_take_offsets_match_ground_truth(tmp_path):
     """The whole path: `record` a simulated take, `sync-report` it, compare with ground_truth.h5."""
     runner = CliRunner()
-    rig_file = tmp_path / "rig.toml"
-    made = runner.invoke(cli, ["rig", "init", "--cameras", "5", "--resolution", "32x18", "-o", str(rig_file)])
-    assert made.exit_code == 0
-    result = runner.invoke(cli, ["record", "--rig", str(rig_file), "--session", str(tmp_path / "S"), "--take", "t",
+    rig = str(tmp_path / "rig.toml")
+    assert runner.invoke(cli, ["rig", "init", "--cameras", "5", "--resolution", "32x18", "-o", rig]).exit_code == 0
+    result = runner.invoke(cli, ["record", "--rig", rig, "--session", str(tmp_path / "S"), "--take", "t",
                                  "--kind", "calibration", "--duration", "2"])
     assert result.exit_code == 0, result.output
     take = tmp_path / "S" / "t"

@@ -254,3 +254,13 @@ def test_monitor_command_refuses_a_folder_that_is_no_take(tmp_path):
     res = subprocess.run([sys.executable, "-m", "manus_capture.cli", "monitor", str(tmp_path), "--port", "0"],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and str(tmp_path) in res.stderr and "Traceback" not in res.stderr
+
+
+def test_a_path_that_is_no_take_or_session_says_which(tmp_path):
+    (tmp_path / "frames.csv").write_text("")
+    (tmp_path / "empty").mkdir()
+    for path, words in ((tmp_path / "nope", "no such take or session folder"),
+                        (tmp_path / "frames.csv", "a file, not a take or session folder"),
+                        (tmp_path / "empty", "neither a take (no take.json) nor a session")):
+        with pytest.raises(MonitorError, match=rf"^{path}: {words}".replace("(", r"\(").replace(")", r"\)")):
+            RecordedSource(path)

@@ -145,6 +145,8 @@ class RecordedSource:
             order = {t["name"]: i for i, t in enumerate(session.takes)} if session else {}
             found = sorted((p for p in folder.iterdir() if (p / "take.json").is_file()),
                            key=lambda p: (order.get(p.name, len(order)), p.name))
+        elif folder.exists():
+            raise MonitorError(f"{folder}: a file, not a take or session folder")
         else:
             raise MonitorError(f"{folder}: no such take or session folder")
         if not found:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import socket
 import subprocess
 import sys
@@ -262,5 +263,5 @@ def test_a_path_that_is_no_take_or_session_says_which(tmp_path):
     for path, words in ((tmp_path / "nope", "no such take or session folder"),
                         (tmp_path / "frames.csv", "a file, not a take or session folder"),
                         (tmp_path / "empty", "neither a take (no take.json) nor a session")):
-        with pytest.raises(MonitorError, match=rf"^{path}: {words}".replace("(", r"\(").replace(")", r"\)")):
+        with pytest.raises(MonitorError, match="^" + re.escape(f"{path}: {words}")):
             RecordedSource(path)

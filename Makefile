@@ -4,9 +4,11 @@
 VENV     ?= .venv
 PY       := $(VENV)/bin/python
 STAMP    := $(VENV)/.installed
-# chromium + chromium-driver: the monitor's page is tested in a real browser (docs/setup.md)
+# chromium + chromium-driver: the monitor's page is tested in a real browser (docs/setup.md);
+# gcc + libjpeg62-turbo-dev: the window decoder (manus_core/csrc/jpeg_window.c)
 APT_PKGS := aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config socat ffmpeg \
-            chromium chromium-driver
+            chromium chromium-driver gcc libc6-dev libjpeg62-turbo-dev
+JPEG_WINDOW := manus_core/_jpeg_window.so
 SUDO     := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 # one worker per file: a module fixture (the demo run, the rendered cube) is built once, not per worker
 PYTEST_ARGS ?= -n 2 -q --dist loadfile --durations=15
@@ -14,7 +16,11 @@ DEMO_DIR ?= demo
 
 .PHONY: setup system lpips models demo test bench clean
 
-setup: system $(STAMP)
+setup: system $(STAMP) $(JPEG_WINDOW)
+
+# libjpeg-turbo decoding a window of a frame (manus_core/jpeg_window.py loads it through ctypes)
+$(JPEG_WINDOW): manus_core/csrc/jpeg_window.c
+	cc -O2 -shared -fPIC -Wall -o $@ $< -ljpeg
 
 # apt packages only when missing, so a second run costs a dpkg query and nothing else.
 system:
@@ -54,4 +60,4 @@ bench: models
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache
+	rm -rf $(VENV) *.egg-info .pytest_cache $(JPEG_WINDOW)

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 import simplejpeg
 
+from manus_core import jpeg_window
 from manus_core.errors import TakeError
 from manus_core.frames_csv import FILE_NAME as FRAMES_CSV
 from manus_core.frames_csv import read_frames_csv
@@ -184,6 +185,13 @@ class Take:
         Skipped frames are not decoded. A video that ends before `stop` (or before its frames.csv
         rows when stop is None) raises TakeError naming the file and both counts.
         """
+        for k, frame in self.iter_encoded(cam, start, stop, step):
+            yield k, frame.decode()
+
+    def iter_encoded(self, cam: str, start: int = 0, stop: int | None = None,
+                     step: int = 1) -> Iterator[tuple[int, EncodedFrame]]:
+        """As iter_frames, undecoded: (k, EncodedFrame), for a reader that decodes each frame
+        whole or only the window it needs."""
         expected = self.frame_count(cam) if stop is None else stop
         path = self.video_path(cam)
         k = start - 1
@@ -191,7 +199,7 @@ class Take:
             if k >= expected:
                 return
             if (k - start) % step == 0:
-                yield k, _decode(packet, path, k)
+                yield k, EncodedFrame(packet, path, k)
         if k + 1 < expected:
             raise TakeError(f"{path}: has {k + 1} frames, frames.csv (or the request) needs {expected}")
 
@@ -258,6 +266,49 @@ def video_packets(path: Path) -> Iterator[np.ndarray]:
             yield packet.reshape(-1)
     finally:
         cap.release()
+
+
+class EncodedFrame:
+    """Frame k of a video as its JPEG packet, decoded when asked for: whole, or a window of it."""
+
+    __slots__ = ("packet", "path", "k")
+
+    def __init__(self, packet: np.ndarray, path: Path, k: int) -> None:
+        self.packet, self.path, self.k = packet, path, k
+
+    def decode(self) -> np.ndarray:
+        """The whole frame, (H,W,3) BGR uint8."""
+        return _decode(self.packet, self.path, self.k)
+
+    def decode_window(self, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+        """The frame (H,W,3) BGR uint8 with at least its columns x0..x1-1 and rows y0..y1-1
+        (clipped to it) decoded, the same pixels as a whole decode's, and the rest undefined: for a
+        reader that looks only there. Through jpeg_window where it is built and the frame decodes
+        there, else the whole frame."""
+        height, width = _size(self.packet)
+        if jpeg_window.available() and width:
+            x0, y0, x1, y1 = _clip(x0, y0, x1, y1, width, height)
+            image = np.empty((height, width, 3), np.uint8)
+            try:
+                jpeg_window.decode_window(self.packet, x0, y0, x1 - x0, y1 - y0, image)
+                return image
+            except ValueError:
+                pass    # as a whole decode does: OpenCV's reading of what libjpeg refuses
+        return self.decode()
+
+
+def _clip(x0: int, y0: int, x1: int, y1: int, width: int, height: int) -> tuple[int, int, int, int]:
+    """A window within a width x height frame; the whole frame where nothing of it is inside."""
+    x0, y0, x1, y1 = max(int(x0), 0), max(int(y0), 0), min(int(x1), width), min(int(y1), height)
+    return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else (0, 0, width, height)
+
+
+def _size(packet: np.ndarray) -> tuple[int, int]:
+    """(height, width) from a JPEG's header; (0, 0) where it has none."""
+    try:
+        return simplejpeg.decode_jpeg_header(packet)[:2]
+    except ValueError:
+        return 0, 0
 
 
 def _decode(packet: np.ndarray, path: Path, k: int, out: np.ndarray | None = None) -> np.ndarray:

@@ -33,7 +33,7 @@ import numpy as np
 from manus_core.errors import ModelError, TakeError
 from manus_core.fileio import write_atomic
 from manus_core.progress import Progress, silent
-from manus_core.take import Take
+from manus_core.take import EncodedFrame, Take
 
 from . import boxes as bx
 from .detector import Detector, hand_keypoint_detector
@@ -43,6 +43,7 @@ FORMAT = "manus-capture keypoints2d"
 # The tracker starts afresh (the palm detector) at every multiple of this many frames of a camera,
 # and a task holds whole periods: a take split over tasks gives the keypoints of one pass.
 REDETECT_EVERY = 128
+Frame = np.ndarray | EncodedFrame   # an image (H,W,3) BGR uint8, or a take's frame decoded on demand
 # While no hand is found the palm detector looks at one frame in this many, not at every frame: a
 # camera that does not see the hand costs little more than its decoding. Where it finds the hand,
 # the frames skipped since its last look are tracked backwards from there. (On bench_detect's
@@ -125,7 +126,7 @@ def detect_take(take: Take, detector: Detector, boxes: dict[str, np.ndarray] | N
     result = {}
     for cam in cameras:
         kp, used = _empty(take.frame_count(cam))
-        _detect_frames(detector, take.iter_frames(cam, 0, take.readable_frames(cam)),
+        _detect_frames(detector, take.iter_encoded(cam, 0, take.readable_frames(cam)),
                        None if boxes is None else boxes[cam], chunk, min_score, track, kp, used, batch_done,
                        redetect_every, search_every)
         result[cam] = _camera_keypoints(kp, used)
@@ -165,7 +166,7 @@ def detect_range(task: DetectTask) -> tuple[np.ndarray, np.ndarray]:
     """(keypoints (n,21,3), boxes and angles used (n,5)) of a DetectTask's frames."""
     kp, used = _empty(task.stop - task.start)
     # indices within the task, which starts on a whole redetection period (detect_take_tasks)
-    frames = ((k - task.start, image) for k, image in Take(task.take).iter_frames(task.camera, task.start, task.stop))
+    frames = ((k - task.start, frame) for k, frame in Take(task.take).iter_encoded(task.camera, task.start, task.stop))
     _detect_frames(cached_detector(task.model, task.device, task.palm_tiles), frames, task.boxes, task.chunk,
                    task.min_score, task.track, kp, used, redetect_every=task.redetect_every)
     return kp, used
@@ -224,8 +225,9 @@ def _camera_keypoints(kp: np.ndarray, used: np.ndarray) -> CameraKeypoints:
 def _detect_frames(detector: Detector, frames, boxes: np.ndarray | None, chunk: int, min_score: float,
                    track: bool, kp: np.ndarray, used: np.ndarray, done: Callable[[int], None] = lambda n: None,
                    redetect_every: int = REDETECT_EVERY, search_every: int = SEARCH_EVERY) -> None:
-    """Detect (index, image) pairs into kp and used, `chunk` frames at a time; done(frames) after
-    each chunk. With `track` and no boxes, track_frames."""
+    """Detect (index, frame) pairs into kp and used, `chunk` frames at a time; done(frames) after
+    each chunk. With `track` and no boxes, track_frames. A frame: an image (H,W,3) BGR uint8 or a
+    take's EncodedFrame."""
     if track and boxes is None:
         track_frames(detector, frames, min_score, kp, used, redetect_every, search_every, chunk, done)
         return
@@ -234,12 +236,12 @@ def _detect_frames(detector: Detector, frames, boxes: np.ndarray | None, chunk: 
         done(len(batch))
 
 
-def _detect_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], boxes: np.ndarray | None,
+def _detect_batch(detector: Detector, batch: list[tuple[int, Frame]], boxes: np.ndarray | None,
                   min_score: float, kp: np.ndarray, used: np.ndarray) -> None:
-    """Keypoints of a batch of (frame index, image) into kp (F,21,3), and the boxes and angles
+    """Keypoints of a batch of (frame index, frame) into kp (F,21,3), and the boxes and angles
     used into used (F,5): boxes (F,5) of the camera, or None for the palm detector's."""
     index = [k for k, _ in batch]
-    images = [im for _, im in batch]
+    images = [frame if isinstance(frame, np.ndarray) else frame.decode() for _, frame in batch]
     if boxes is None:
         found_boxes, found_angles = detector.find_boxes(images, 1, min_score)
         given = np.full((len(batch), 5), np.nan)
@@ -256,10 +258,12 @@ def _detect_batch(detector: Detector, batch: list[tuple[int, np.ndarray]], boxes
 def track_frames(detector: Detector, frames, min_score: float, kp: np.ndarray, used: np.ndarray,
                  redetect_every: int = REDETECT_EVERY, search_every: int = SEARCH_EVERY, report_every: int = 16,
                  done: Callable[[int], None] = lambda n: None) -> None:
-    """Keypoints of (index, image) pairs, in order, as MediaPipe's tracker finds them, into kp and used.
+    """Keypoints of (index, frame) pairs (as _detect_frames), in order, as MediaPipe's tracker finds
+    them, into kp and used.
 
     Where the hand was found in the previous frame (presence >= min_score), one pass of the keypoint
-    model on the crop around its keypoints. Elsewhere the palm detector and two passes: at every
+    model on the crop around its keypoints (of an EncodedFrame, only the window under the crop is
+    decoded: the same pixels). Elsewhere the palm detector and two passes: at every
     index that is a multiple of `redetect_every` (a fresh start, so that a take split into whole
     periods gives the same), at the frame where the tracked hand is lost, and, while no hand is
     found, at one index in `search_every` and at the last frame of a period; where it finds the hand,
@@ -267,33 +271,33 @@ def track_frames(detector: Detector, frames, min_score: float, kp: np.ndarray, u
     (redetect_every=16, search_every=1: as the tracker of earlier rounds.)
     """
     previous = None                    # the last frame's keypoints while the hand is tracked
-    skipped: list[tuple[int, np.ndarray]] = []   # frames not yet searched while no hand is found
+    skipped: list[tuple[int, Frame]] = []   # frames not yet searched while no hand is found
     count = 0
 
-    def search(k: int, image: np.ndarray) -> None:
+    def search(k: int, frame: Frame) -> None:
         nonlocal previous, skipped
-        _detect_batch(detector, [(k, image)], None, min_score, kp, used)
+        _detect_batch(detector, [(k, frame)], None, min_score, kp, used)
         previous = _tracked(kp[k], min_score)
         if previous is not None:
             _track_backwards(detector, skipped, previous, min_score, kp, used)
         skipped = []
 
-    for k, image in frames:
+    for k, frame in frames:
         if k % redetect_every == 0:
             if skipped:
                 search(*skipped.pop())
             previous, skipped = None, []
         if previous is not None:
-            found, given = _track_one(detector, image, previous)
+            found, given = _track_one(detector, frame, previous)
             previous = _tracked(found, min_score)
             if previous is not None:
                 kp[k], used[k] = found, given
             else:
-                search(k, image)          # lost here: look at once
+                search(k, frame)          # lost here: look at once
         elif k % search_every == 0 or k % redetect_every == 0:
-            search(k, image)
+            search(k, frame)
         else:
-            skipped.append((k, image))
+            skipped.append((k, frame))
         count += 1
         if count % report_every == 0:
             done(report_every)
@@ -309,23 +313,34 @@ def _tracked(keypoints: np.ndarray, min_score: float) -> np.ndarray | None:
     return keypoints if keypoints[0, 2] >= min_score and np.isfinite(keypoints[:, :2]).all() else None
 
 
-def _track_one(detector: Detector, image: np.ndarray, previous: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _track_one(detector: Detector, frame: Frame, previous: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One pass on the crop around `previous` keypoints: (keypoints (21,3), used box and angle (5,))."""
     scale = detector.model.crop.box_scale
     rect = bx.rects_from_keypoints(previous[None])
+    image = frame if isinstance(frame, np.ndarray) else frame.decode_window(*_window(rect[0]))
     found = detector.detect_rects([image], [rect], refine=0)[0][0]
     # the box that, enlarged by the model's box scale, is the crop: as the palm's boxes
     given = np.r_[rect[0, :2] - rect[0, 2] / (2 * scale), rect[0, :2] + rect[0, 2] / (2 * scale), rect[0, 4]]
     return found, given
 
 
-def _track_backwards(detector: Detector, skipped: list[tuple[int, np.ndarray]], start: np.ndarray,
+def _window(rect: np.ndarray, margin: int = 2) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): the frame's pixels a crop of `rect` (5,) reads, with `margin` more for its
+    bilinear neighbours."""
+    cx, cy, w, h, angle = rect
+    c, s = abs(np.cos(angle)), abs(np.sin(angle))
+    hx, hy = (w * c + h * s) / 2, (w * s + h * c) / 2
+    return (int(np.floor(cx - hx)) - margin, int(np.floor(cy - hy)) - margin,
+            int(np.ceil(cx + hx)) + margin + 1, int(np.ceil(cy + hy)) + margin + 1)
+
+
+def _track_backwards(detector: Detector, skipped: list[tuple[int, Frame]], start: np.ndarray,
                      min_score: float, kp: np.ndarray, used: np.ndarray) -> None:
     """Track from keypoints `start` back through the skipped frames (latest first) while the hand
     stays found."""
     previous = start
-    for k, image in reversed(skipped):
-        found, given = _track_one(detector, image, previous)
+    for k, frame in reversed(skipped):
+        found, given = _track_one(detector, frame, previous)
         previous = _tracked(found, min_score)
         if previous is None:
             return

@@ -71,7 +71,7 @@ int mc_decode_window(const unsigned char *data, unsigned long size, int x, int y
         JSAMPROW line = out + ((unsigned long)(y + row) * frame_width + left) * 3;
         jpeg_read_scanlines(&info, &line, 1);
     }
-    /* the rest of the frame is not needed: jpeg_abort leaves it undecoded */
+    /* the rows below are not needed: destroying the decompressor leaves them undecoded */
     jpeg_destroy_decompress(&info);
     /* the crop's outer columns are exact only where they are the frame's own edges */
     int inner_left = left > 0, inner_right = left + width < frame_width;
